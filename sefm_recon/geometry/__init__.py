@@ -1,0 +1,1 @@
+"""Geometry stages: two-view geometry, epipolar line pairs, triangulation."""

@@ -1,0 +1,54 @@
+"""Two-view triangulation of matches with a known relative pose (vectorised)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def pixel_rays(K: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """Unit viewing rays (N, 3), camera axes, of pixels ``uv`` (N, 2), COLMAP convention."""
+    r = np.c_[uv, np.ones(len(uv))] @ np.linalg.inv(K).T
+    return r / np.linalg.norm(r, axis=1, keepdims=True)
+
+
+def triangulate(K1, K2, R, t, uv1, uv2):
+    """Midpoint triangulation of matches in camera 1's frame.
+
+    Camera 1 is at the origin with identity rotation, camera 2 at
+    ``x_cam2 = R @ X + t``. Each point is the midpoint of the shortest segment
+    between the two viewing rays.
+
+    Returns:
+        X (N, 3) points; valid (N,) bool: finite, in front of both cameras.
+        angle (N,) triangulation angle, radians.
+    """
+    uv1 = np.asarray(uv1, np.float64).reshape(-1, 2)
+    uv2 = np.asarray(uv2, np.float64).reshape(-1, 2)
+    d1 = pixel_rays(K1, uv1)
+    d2 = pixel_rays(K2, uv2) @ R  # rows: R^T d2, camera-2 rays in camera-1 axes
+    c2 = -R.T @ np.asarray(t, np.float64).reshape(3)
+    # Solve s1 d1 - s2 d2 = c2 in the least-squares sense for each pair.
+    b = np.sum(d1 * d2, axis=1)
+    e = d1 @ c2
+    f = d2 @ c2
+    den = 1.0 - b * b
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s1 = (e - b * f) / den
+        s2 = (b * e - f) / den
+    X = 0.5 * (s1[:, None] * d1 + (c2[None, :] + s2[:, None] * d2))
+    angle = np.arccos(np.clip(b, -1.0, 1.0))
+    valid = np.isfinite(X).all(axis=1) & (s1 > 0) & (s2 > 0) & (den > 1e-12)
+    return X, valid, angle
+
+
+def project(K: np.ndarray, R: np.ndarray, t: np.ndarray, X: np.ndarray) -> np.ndarray:
+    """Pixels (N, 2) of points X (N, 3) in a camera ``x_cam = R X + t``."""
+    x = (X @ R.T + t) @ K.T
+    return x[:, :2] / x[:, 2:3]
+
+
+def reprojection_errors(K1, K2, R, t, uv1, uv2, X) -> np.ndarray:
+    """Mean of both images' reprojection errors, pixels, (N,)."""
+    e1 = np.linalg.norm(project(K1, np.eye(3), np.zeros(3), X) - uv1, axis=1)
+    e2 = np.linalg.norm(project(K2, R, t, X) - uv2, axis=1)
+    return 0.5 * (e1 + e2)

@@ -1,0 +1,207 @@
+"""Two-view geometry through pycolmap: SIFT, matching, RANSAC, relative pose.
+
+Works on undistorted pinhole images (see :mod:`sefm_recon.geometry.undistort`),
+so cameras here are 3x3 matrices ``K``. The relative pose is COLMAP's
+``cam2_from_cam1``: ``x_cam2 = R @ x_cam1 + t``, with ``|t| = 1`` when estimated.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+import pycolmap
+
+from ..errors import InputError
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass
+class TwoView:
+    """Relative geometry of a pair, in the working (undistorted) pixel frame."""
+
+    K1: np.ndarray  #: (3, 3)
+    K2: np.ndarray  #: (3, 3)
+    R: np.ndarray  #: (3, 3) cam2_from_cam1 rotation
+    t: np.ndarray  #: (3,) cam2_from_cam1 translation
+    kp1: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))  #: (N, 2) inlier SIFT points, image 1
+    kp2: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))  #: (N, 2) inlier SIFT points, image 2
+    num_sift_matches: int = 0  #: putative SIFT matches before geometric verification
+    source: str = "estimated"  #: "estimated" or "given"
+
+    @property
+    def E(self) -> np.ndarray:
+        """Essential matrix, ``x2^T E x1 = 0`` for normalised camera rays."""
+        return skew(self.t) @ self.R
+
+    @property
+    def F(self) -> np.ndarray:
+        """Fundamental matrix in working pixel coordinates (COLMAP convention)."""
+        return np.linalg.inv(self.K2).T @ self.E @ np.linalg.inv(self.K1)
+
+
+def skew(v: np.ndarray) -> np.ndarray:
+    """Cross-product matrix ``[v]_x``."""
+    return np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]], dtype=np.float64)
+
+
+def extract_sift(gray: np.ndarray, max_features: int = 8192) -> tuple[np.ndarray, np.ndarray]:
+    """SIFT keypoints and descriptors with pycolmap (COLMAP's CPU SIFT).
+
+    Args:
+        gray: (H, W) uint8 image.
+    Returns:
+        xy (N, 2) float64 keypoint positions (COLMAP pixel convention) and
+        (N, 128) float32 descriptors.
+    """
+    opts = pycolmap.FeatureExtractionOptions()
+    opts.sift.max_num_features = int(max_features)
+    opts.use_gpu = False
+    extractor = pycolmap.FeatureExtractor.create(opts, device=pycolmap.Device.cpu)
+    keypoints, descriptors = extractor.extract_from_uint8_array(np.ascontiguousarray(gray))
+    xy = pycolmap.keypoints_to_matrix(keypoints)[:, :2].astype(np.float64)
+    desc = np.asarray(descriptors.data, dtype=np.float32)
+    return xy, desc
+
+
+def match_descriptors(desc1: np.ndarray, desc2: np.ndarray, max_ratio: float = 0.8) -> np.ndarray:
+    """Mutual nearest neighbours that pass Lowe's ratio test, (M, 2) uint32 indices.
+
+    OpenCV's brute-force matcher: pycolmap's CPU matcher gives the same matches
+    but is several times slower for a few thousand features.
+    """
+    if len(desc1) < 2 or len(desc2) < 2:
+        return np.zeros((0, 2), np.uint32)
+    matcher = cv2.BFMatcher(cv2.NORM_L2)
+    fwd = matcher.knnMatch(desc1, desc2, k=2)
+    bwd = matcher.match(desc2, desc1)
+    back = np.full(len(desc2), -1, np.int64)
+    for m in bwd:
+        back[m.queryIdx] = m.trainIdx
+    pairs = [
+        (m[0].queryIdx, m[0].trainIdx)
+        for m in fwd
+        if len(m) == 2 and m[0].distance < max_ratio * m[1].distance and back[m[0].trainIdx] == m[0].queryIdx
+    ]
+    return np.asarray(pairs, dtype=np.uint32).reshape(-1, 2)
+
+
+def sift_correspondences(gray1, gray2, max_features: int = 8192, max_ratio: float = 0.8):
+    """Putative SIFT correspondences ``(xy1 (M, 2), xy2 (M, 2))`` between two images."""
+    xy1, d1 = extract_sift(gray1, max_features)
+    xy2, d2 = extract_sift(gray2, max_features)
+    m = match_descriptors(d1, d2, max_ratio)
+    logger.info("SIFT: %d and %d features, %d putative matches", len(xy1), len(xy2), len(m))
+    return xy1[m[:, 0]], xy2[m[:, 1]]
+
+
+def _pinhole(K: np.ndarray, width: int, height: int, camera_id: int) -> pycolmap.Camera:
+    cam = pycolmap.Camera.create_from_model_name(camera_id, "PINHOLE", 1.0, width, height)
+    cam.params = np.array([K[0, 0], K[1, 1], K[0, 2], K[1, 2]])
+    return cam
+
+
+def estimate_two_view(
+    xy1: np.ndarray,
+    xy2: np.ndarray,
+    K1: np.ndarray,
+    K2: np.ndarray,
+    size1: tuple[int, int],
+    size2: tuple[int, int],
+    min_inliers: int = 30,
+    max_error: float = 2.0,
+    min_tri_angle_deg: float = 0.5,
+) -> TwoView:
+    """Essential matrix by RANSAC and the relative pose, through pycolmap.
+
+    Args:
+        xy1, xy2: (M, 2) putative correspondences, working pixel coordinates.
+        size1, size2: (width, height) of the working images.
+    Raises:
+        InputError: too few inliers (unrelated images or too little overlap), or
+            no baseline (the same photo twice, or a pure rotation).
+    """
+    if len(xy1) < min_inliers:
+        raise InputError(
+            f"too little overlap between the images: {len(xy1)} SIFT matches found, "
+            f"at least {min_inliers} geometric inliers are needed"
+        )
+    cam1 = _pinhole(K1, *size1, 1)
+    cam2 = _pinhole(K2, *size2, 2)
+    opts = pycolmap.TwoViewGeometryOptions()
+    opts.compute_relative_pose = True
+    opts.ransac.max_error = float(max_error)
+    opts.ransac.random_seed = 0
+    opts.min_num_inliers = int(min_inliers)
+    opts.detect_watermark = False
+    matches = np.stack([np.arange(len(xy1)), np.arange(len(xy1))], 1).astype(np.uint32)
+    tvg = pycolmap.estimate_calibrated_two_view_geometry(
+        cam1, np.ascontiguousarray(xy1, np.float64), cam2, np.ascontiguousarray(xy2, np.float64), matches, opts
+    )
+    inliers = np.asarray(tvg.inlier_matches, dtype=np.int64).reshape(-1, 2)
+    C = pycolmap.TwoViewGeometryConfiguration
+    config = int(tvg.config)  # a plain int in pycolmap 4.x
+    names = {int(v): k for k, v in C.__members__.items()}
+    logger.info("two-view geometry: %s with %d inliers of %d", names.get(config, config), len(inliers), len(xy1))
+    if len(inliers) < min_inliers or config in (int(C.UNDEFINED), int(C.DEGENERATE)):
+        raise InputError(
+            f"too little overlap between the images: {len(inliers)} geometric inliers found "
+            f"among {len(xy1)} SIFT matches, at least {min_inliers} are needed"
+        )
+    if config in (int(C.PANORAMIC), int(C.PLANAR_OR_PANORAMIC)) and _median_parallax_px(xy1[inliers[:, 0]], xy2[inliers[:, 1]]) < 1.0:
+        raise InputError("no baseline between the images (the same photo twice?): depth cannot be recovered")
+    pose = tvg.cam2_from_cam1
+    if pose is None:
+        raise InputError("could not recover a relative pose from the matches (degenerate geometry)")
+    R = np.asarray(pose.rotation.matrix(), dtype=np.float64)
+    t = np.asarray(pose.translation, dtype=np.float64).reshape(3)
+    t = t / max(np.linalg.norm(t), 1e-12)
+    tv = TwoView(K1, K2, R, t, xy1[inliers[:, 0]], xy2[inliers[:, 1]], len(xy1))
+    angle = np.degrees(np.median(triangulation_angles(tv)))
+    if not np.isfinite(angle) or angle < min_tri_angle_deg:
+        raise InputError(
+            f"no baseline between the images (median triangulation angle {angle:.2f} deg, "
+            f"need {min_tri_angle_deg} deg): a pure rotation or the same photo twice gives no depth"
+        )
+    return tv
+
+
+def _median_parallax_px(a: np.ndarray, b: np.ndarray) -> float:
+    return float(np.median(np.linalg.norm(a - b, axis=1))) if len(a) else 0.0
+
+
+def triangulation_angles(tv: TwoView) -> np.ndarray:
+    """Angle (radians) between the two viewing rays of each inlier SIFT match."""
+    r1 = np.c_[tv.kp1, np.ones(len(tv.kp1))] @ np.linalg.inv(tv.K1).T
+    r2 = (np.c_[tv.kp2, np.ones(len(tv.kp2))] @ np.linalg.inv(tv.K2).T) @ tv.R  # into cam1 axes
+    r1 /= np.linalg.norm(r1, axis=1, keepdims=True)
+    r2 /= np.linalg.norm(r2, axis=1, keepdims=True)
+    return np.arccos(np.clip(np.sum(r1 * r2, axis=1), -1, 1))
+
+
+def epipolar_distances(F: np.ndarray, xy1: np.ndarray, xy2: np.ndarray) -> np.ndarray:
+    """Symmetric point-to-epipolar-line distance in pixels, (N,)."""
+    h1 = np.c_[xy1, np.ones(len(xy1))]
+    h2 = np.c_[xy2, np.ones(len(xy2))]
+    l2 = h1 @ F.T
+    l1 = h2 @ F
+    num = np.abs(np.sum(h2 * l2, axis=1))
+    d2 = num / np.maximum(np.hypot(l2[:, 0], l2[:, 1]), 1e-12)
+    d1 = num / np.maximum(np.hypot(l1[:, 0], l1[:, 1]), 1e-12)
+    return 0.5 * (d1 + d2)
+
+
+def with_known_pose(K1, K2, R, t, xy1, xy2, max_error: float = 2.0) -> TwoView:
+    """Geometry from given poses; SIFT matches are kept where they agree with it.
+
+    The kept matches only serve to bound the depth range searched by the matcher.
+    """
+    tv = TwoView(np.asarray(K1, float), np.asarray(K2, float), np.asarray(R, float), np.asarray(t, float).reshape(3),
+                 source="given", num_sift_matches=len(xy1))
+    if len(xy1):
+        keep = epipolar_distances(tv.F, xy1, xy2) < max_error
+        tv.kp1, tv.kp2 = xy1[keep], xy2[keep]
+    return tv

@@ -1,0 +1,105 @@
+"""Cameras: parsing COLMAP camera strings, EXIF inference, defaults.
+
+A camera on the command line is a COLMAP ``cameras.txt`` line without its id:
+``MODEL WIDTH HEIGHT PARAMS...``, e.g. ``PINHOLE 1000 750 850 850 500 375``.
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+
+from ..errors import InputError
+
+logger = logging.getLogger(__name__)
+
+#: Focal length of the default camera, as a multiple of max(width, height);
+#: COLMAP's own default when an image has no EXIF focal length.
+DEFAULT_FOCAL_FACTOR = 1.2
+
+
+def parse_camera(text: str, camera_id: int = 1) -> pycolmap.Camera:
+    """Parse ``"MODEL WIDTH HEIGHT PARAMS..."`` into a :class:`pycolmap.Camera`.
+
+    Raises :class:`InputError` with a one-line reason on any malformed string.
+    """
+    fields = text.replace(",", " ").split()
+    if len(fields) < 4:
+        raise InputError(
+            f"bad camera {text!r}: expected 'MODEL WIDTH HEIGHT PARAMS...', "
+            "e.g. 'PINHOLE 1000 750 850 850 500 375'"
+        )
+    model = fields[0].upper()
+    try:
+        width, height = int(fields[1]), int(fields[2])
+        params = [float(v) for v in fields[3:]]
+    except ValueError:
+        raise InputError(f"bad camera {text!r}: WIDTH, HEIGHT and PARAMS must be numbers") from None
+    if width <= 0 or height <= 0:
+        raise InputError(f"bad camera {text!r}: WIDTH and HEIGHT must be positive")
+    try:
+        camera = pycolmap.Camera.create_from_model_name(camera_id, model, 1.0, width, height)
+    except Exception:
+        raise InputError(
+            f"bad camera {text!r}: unknown camera model {model!r} "
+            "(COLMAP models: SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL, OPENCV, ...)"
+        ) from None
+    expected = len(camera.params)
+    if len(params) != expected:
+        raise InputError(
+            f"bad camera {text!r}: model {model} takes {expected} parameters "
+            f"({camera.params_info}), got {len(params)}"
+        )
+    camera.params = np.asarray(params, dtype=np.float64)
+    if not camera.verify_params() or camera.has_bogus_params(0.01, 100.0, 10.0):
+        raise InputError(f"bad camera {text!r}: implausible parameters ({camera.params_info})")
+    return camera
+
+
+def camera_to_string(camera: pycolmap.Camera) -> str:
+    """Inverse of :func:`parse_camera`."""
+    params = " ".join(f"{p:.10g}" for p in camera.params)
+    return f"{camera.model_name} {camera.width} {camera.height} {params}"
+
+
+def default_camera(width: int, height: int, camera_id: int = 1) -> pycolmap.Camera:
+    """COLMAP's default: SIMPLE_RADIAL, f = 1.2 * max(W, H), centred principal point."""
+    f = DEFAULT_FOCAL_FACTOR * max(width, height)
+    return pycolmap.Camera.create_from_model_name(camera_id, "SIMPLE_RADIAL", f, width, height)
+
+
+def infer_camera(path: str | Path, width: int, height: int, camera_id: int = 1) -> tuple[pycolmap.Camera, str]:
+    """Camera from the image's EXIF focal length through pycolmap, else the default.
+
+    Returns the camera and its source, ``"exif"`` or ``"default"``. ``width`` and
+    ``height`` are those of the decoded (EXIF-rotated) image; when EXIF rotation
+    swaps the axes, the focal length is kept and the principal point re-centred.
+    """
+    try:
+        camera = pycolmap.infer_camera_from_image(str(path))
+        has_prior = bool(camera.has_prior_focal_length)
+    except Exception as err:  # unreadable EXIF is not an error: fall back
+        logger.debug("EXIF camera inference failed for %s: %s", path, err)
+        camera, has_prior = None, False
+    if camera is None or not has_prior:
+        return default_camera(width, height, camera_id), "default"
+    f = float(camera.mean_focal_length())
+    scale = max(width, height) / max(camera.width, camera.height)
+    out = pycolmap.Camera.create_from_model_name(camera_id, "SIMPLE_RADIAL", f * scale, width, height)
+    return out, "exif"
+
+
+def calibration_matrix(camera: pycolmap.Camera) -> np.ndarray:
+    """3x3 pinhole matrix of a camera (ignoring distortion), COLMAP pixel convention."""
+    return np.asarray(camera.calibration_matrix(), dtype=np.float64)
+
+
+def has_distortion(camera: pycolmap.Camera) -> bool:
+    """True when the model has non-zero distortion parameters."""
+    if camera.model_name in ("SIMPLE_PINHOLE", "PINHOLE"):
+        return False
+    extra = np.asarray(camera.params)[list(camera.extra_params_idxs())]
+    return bool(np.any(np.abs(extra) > 0))

@@ -1,0 +1,1 @@
+"""SeFM matching stages: rough (keypoint DP), dense (segment DP), validity."""

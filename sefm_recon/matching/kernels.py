@@ -1,0 +1,454 @@
+"""numba kernels of the SeFM matcher: the per-sample loops of §4.2-4.5.
+
+Everything here works on flat arrays of line samples (see
+:class:`sefm_recon.geometry.epipolar.LinePairs`): line ``l`` of image ``n`` is
+``I_n[off_n[l]:off_n[l + 1]]``. :func:`match_lines` runs lines in parallel
+(``prange``); each line writes only its own slice of the outputs.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit, prange
+
+# Back-pointer codes of the DP tables.
+_DIAG, _UP, _LEFT = 0, 1, 2
+
+
+@njit(cache=True)
+def intensity_jumps(a: np.ndarray) -> np.ndarray:
+    """``da_i = |a_{i-1} - a_{i+1}| / 2`` (paper §4.3), 0 at both ends. ``a``: (n,) float32."""
+    n = a.shape[0]
+    da = np.zeros(n, np.float32)
+    for i in range(1, n - 1):
+        da[i] = abs(a[i - 1] - a[i + 1]) * 0.5
+    return da
+
+
+@njit(cache=True)
+def detect_keypoints(a: np.ndarray, threshold: float, border: int) -> np.ndarray:
+    """Positions where the intensity jump exceeds ``threshold`` and is a local maximum.
+
+    Non-maximum suppression keeps one key point per edge, where the paper's plain
+    threshold would mark every sample of a blurred edge. ``border`` samples at
+    both ends are skipped (their neighbourhoods are incomplete).
+    """
+    da = intensity_jumps(a)
+    n = a.shape[0]
+    out = np.empty(n, np.int64)
+    k = 0
+    for i in range(max(border, 1), n - max(border, 1)):
+        if da[i] > threshold and da[i] >= da[i - 1] and da[i] > da[i + 1]:
+            out[k] = i
+            k += 1
+    return out[:k]
+
+
+@njit(cache=True)
+def fft_descriptors(a: np.ndarray, keypoints: np.ndarray, radius: int, ncoef: int) -> np.ndarray:
+    """Fourier descriptors of the neighbourhood of each key point (paper §4.3).
+
+    The window ``a[i - radius : i + radius + 1]`` is Hann-tapered, normalised to
+    zero mean and unit energy (so a gain or offset between the photos does not
+    matter), and described by the real and imaginary parts of its DFT
+    coefficients 1..ncoef (the DC term is gone with the mean). The window is
+    centred on the key point, so the phase says on which side the edge rises.
+
+    Returns (len(keypoints), 2 * ncoef) float32.
+    """
+    n = a.shape[0]
+    size = 2 * radius + 1
+    m = keypoints.shape[0]
+    out = np.zeros((m, 2 * ncoef), np.float32)
+    win = np.empty(size, np.float64)
+    taper = np.empty(size, np.float64)
+    for s in range(size):
+        taper[s] = 0.5 - 0.5 * np.cos(2.0 * np.pi * (s + 1) / (size + 1))
+    cos_t = np.empty((ncoef, size), np.float64)
+    sin_t = np.empty((ncoef, size), np.float64)
+    for c in range(ncoef):
+        for s in range(size):
+            ang = 2.0 * np.pi * (c + 1) * s / size
+            cos_t[c, s] = np.cos(ang)
+            sin_t[c, s] = np.sin(ang)
+    for k in range(m):
+        i0 = keypoints[k] - radius
+        mean = 0.0
+        for s in range(size):
+            idx = min(max(i0 + s, 0), n - 1)
+            win[s] = a[idx]
+            mean += win[s]
+        mean /= size
+        energy = 0.0
+        for s in range(size):
+            win[s] = (win[s] - mean) * taper[s]
+            energy += win[s] * win[s]
+        scale = 1.0 / np.sqrt(energy + 1e-3)
+        for c in range(ncoef):
+            re = 0.0
+            im = 0.0
+            for s in range(size):
+                re += win[s] * cos_t[c, s]
+                im -= win[s] * sin_t[c, s]
+            out[k, 2 * c] = re * scale
+            out[k, 2 * c + 1] = im * scale
+    return out
+
+
+@njit(cache=True)
+def align_keypoints(p, q, desc1, desc2, lo, hi, max_dist):
+    """Ordered alignment of two key point sequences by DP (LCS-like, paper §4.2).
+
+    Maximises the summed similarity ``max_dist - |d1 - d2|`` over strictly
+    increasing pairs; a key point may stay unmatched at no cost (seen in one
+    view only). A pair is allowed only when ``q[j]`` lies in the search band
+    ``[lo[p[i]], hi[p[i]]]`` of line-2 positions.
+
+    Args:
+        p, q: (m,), (n,) increasing key point positions on line 1 and line 2.
+        desc1, desc2: (m, D), (n, D) descriptors.
+        lo, hi: (len(line 1),) band of line-2 positions for every line-1 sample.
+    Returns:
+        (k, 2) int64 indices into ``p`` and ``q`` of the matched pairs, increasing.
+    """
+    m = p.shape[0]
+    n = q.shape[0]
+    S = np.zeros((m + 1, n + 1), np.float32)
+    B = np.zeros((m + 1, n + 1), np.int8)
+    D = desc1.shape[1]
+    for i in range(1, m + 1):
+        pi = p[i - 1]
+        for j in range(1, n + 1):
+            best = S[i - 1, j]
+            b = _UP
+            if S[i, j - 1] > best:
+                best = S[i, j - 1]
+                b = _LEFT
+            qj = q[j - 1]
+            if qj >= lo[pi] and qj <= hi[pi]:
+                d2 = 0.0
+                for c in range(D):
+                    diff = desc1[i - 1, c] - desc2[j - 1, c]
+                    d2 += diff * diff
+                dist = np.sqrt(d2)
+                if dist < max_dist:
+                    cand = S[i - 1, j - 1] + (max_dist - dist)
+                    if cand > best:
+                        best = cand
+                        b = _DIAG
+            S[i, j] = best
+            B[i, j] = b
+    out = np.empty((min(m, n), 2), np.int64)
+    k = 0
+    i = m
+    j = n
+    while i > 0 and j > 0:
+        b = B[i, j]
+        if b == _DIAG:
+            out[k, 0] = i - 1
+            out[k, 1] = j - 1
+            k += 1
+            i -= 1
+            j -= 1
+        elif b == _UP:
+            i -= 1
+        else:
+            j -= 1
+    return out[:k][::-1].copy()
+
+
+@njit(cache=True)
+def resample(seq: np.ndarray, start: int, stop: int, length: int) -> np.ndarray:
+    """Linear interpolation of ``seq[start..stop]`` (inclusive, (n, C)) to ``length`` samples."""
+    C = seq.shape[1]
+    out = np.empty((length, C), np.float32)
+    span = stop - start
+    for u in range(length):
+        pos = start + u * span / (length - 1)
+        i0 = int(np.floor(pos))
+        if i0 >= stop:
+            i0 = stop - 1
+        f = pos - i0
+        for c in range(C):
+            out[u, c] = (1.0 - f) * seq[i0, c] + f * seq[i0 + 1, c]
+    return out
+
+
+@njit(cache=True)
+def _bt_bounds(x: np.ndarray):
+    """I_min, I_max of each sample over its half-way neighbours (paper §4.4)."""
+    L, C = x.shape
+    lo = np.empty((L, C), np.float32)
+    hi = np.empty((L, C), np.float32)
+    for u in range(L):
+        for c in range(C):
+            v = x[u, c]
+            vm = 0.5 * (v + x[u - 1, c]) if u > 0 else v
+            vp = 0.5 * (v + x[u + 1, c]) if u < L - 1 else v
+            lo[u, c] = min(v, min(vm, vp))
+            hi[u, c] = max(v, max(vm, vp))
+    return lo, hi
+
+
+@njit(cache=True)
+def align_segment(x: np.ndarray, y: np.ndarray, penalty: float, band: int):
+    """Align two equal-length sequences sample by sample with DP (paper §4.4).
+
+    Cost of matching ``x_u`` with ``y_v``: the sampling-insensitive
+    ``max(0, y_v - I_max(x_u), I_min(x_u) - y_v)``, taken both ways (the smaller),
+    summed over channels. Moves: diagonal (match), or advancing one sequence
+    only at ``penalty`` (a sample without partner: occlusion or stretch). The
+    path runs from (0, 0) to (L-1, L-1) within ``|u - v| <= band``.
+
+    Args:
+        x, y: (L, C) float32.
+    Returns:
+        v_of_u (L,) float64: the mean partner position of each ``u`` on the path;
+        run (L,) int64: how many ``u`` share that partner (1 = one-to-one);
+        cost (L,) float32: matching cost at the path.
+    """
+    L, C = x.shape
+    xlo, xhi = _bt_bounds(x)
+    ylo, yhi = _bt_bounds(y)
+    W = 2 * band + 1
+    inf = np.float32(1e30)
+    D = np.full((L, W), inf, np.float32)
+    B = np.zeros((L, W), np.int8)
+    Cm = np.zeros((L, W), np.float32)
+    for u in range(L):
+        v0 = max(0, u - band)
+        v1 = min(L - 1, u + band)
+        for v in range(v0, v1 + 1):
+            c = 0.0
+            for ch in range(C):
+                yv = y[v, ch]
+                xu = x[u, ch]
+                c1 = max(0.0, max(yv - xhi[u, ch], xlo[u, ch] - yv))
+                c2 = max(0.0, max(xu - yhi[v, ch], ylo[v, ch] - xu))
+                c += min(c1, c2)
+            k = v - u + band
+            Cm[u, k] = c
+            if u == 0 and v == 0:
+                D[u, k] = c
+                continue
+            best = inf
+            b = _DIAG
+            if u > 0 and v > 0:
+                d = D[u - 1, k]  # (u-1, v-1) has the same diagonal offset
+                if d < best:
+                    best = d
+                    b = _DIAG
+            if u > 0 and k + 1 < W:
+                d = D[u - 1, k + 1] + penalty  # (u-1, v)
+                if d < best:
+                    best = d
+                    b = _UP
+            if v > 0 and k - 1 >= 0:
+                d = D[u, k - 1] + penalty  # (u, v-1)
+                if d < best:
+                    best = d
+                    b = _LEFT
+            D[u, k] = best + c
+            B[u, k] = b
+    vsum = np.zeros(L, np.float64)
+    vcnt = np.zeros(L, np.int64)
+    cost = np.zeros(L, np.float32)
+    partner = np.empty(L, np.int64)
+    u = L - 1
+    v = L - 1
+    while True:
+        k = v - u + band
+        vsum[u] += v
+        vcnt[u] += 1
+        cost[u] = Cm[u, k]
+        partner[u] = v
+        if u == 0 and v == 0:
+            break
+        b = B[u, k]
+        if b == _DIAG:
+            u -= 1
+            v -= 1
+        elif b == _UP:
+            u -= 1
+        else:
+            v -= 1
+    v_of_u = vsum / np.maximum(vcnt, 1)
+    # Length of the run of u's that share one partner v (a horizontal run).
+    run = np.ones(L, np.int64)
+    s = 0
+    while s < L:
+        e = s
+        while e + 1 < L and partner[e + 1] == partner[s] and vcnt[e + 1] == 1 and vcnt[s] == 1:
+            e += 1
+        for r in range(s, e + 1):
+            run[r] = e - s + 1
+        s = e + 1
+    return v_of_u, run, cost
+
+
+@njit(cache=True)
+def _count_strong(da, kps, first, last, strong):
+    """Key points with index in (first, last) whose jump is at least ``strong``."""
+    c = 0
+    for k in range(first + 1, last):
+        if da[kps[k]] >= strong:
+            c += 1
+    return c
+
+
+@njit(cache=True)
+def match_one_line(a, b, lo, hi, threshold, radius, ncoef, max_dist,
+                   sv_max_unmatched, sv_strength, penalty, band_fraction, band_min, band_max,
+                   occlusion_run, out_j, out_cost, out_anchor):
+    """Rough + dense matching of one line pair; writes ``out_*`` of line 1's samples.
+
+    Returns (key points on line 1, on line 2, rough matches, valid segments, segments).
+    """
+    n1 = a.shape[0]
+    n2 = b.shape[0]
+    lum1 = np.empty(n1, np.float32)
+    lum2 = np.empty(n2, np.float32)
+    C = a.shape[1]
+    for i in range(n1):
+        s = 0.0
+        for c in range(C):
+            s += a[i, c]
+        lum1[i] = s / C
+    for i in range(n2):
+        s = 0.0
+        for c in range(C):
+            s += b[i, c]
+        lum2[i] = s / C
+    kp1 = detect_keypoints(lum1, threshold, 1)
+    kp2 = detect_keypoints(lum2, threshold, 1)
+    if kp1.shape[0] < 2 or kp2.shape[0] < 2:
+        return kp1.shape[0], kp2.shape[0], 0, 0, 0
+    d1 = fft_descriptors(lum1, kp1, radius, ncoef)
+    d2 = fft_descriptors(lum2, kp2, radius, ncoef)
+    pairs = align_keypoints(kp1, kp2, d1, d2, lo, hi, max_dist)
+    npairs = pairs.shape[0]
+    da1 = intensity_jumps(lum1)
+    da2 = intensity_jumps(lum2)
+    strong = sv_strength * threshold
+    nvalid = 0
+    for k in range(npairs):
+        out_anchor[kp1[pairs[k, 0]]] = True
+    for k in range(npairs - 1):
+        ka1 = pairs[k, 0]
+        kb1 = pairs[k + 1, 0]
+        ka2 = pairs[k, 1]
+        kb2 = pairs[k + 1, 1]
+        # S_v (paper §4.5): the segment is valid only if no (strong) key point
+        # lies between its ends in either view; one there means an occlusion.
+        unmatched = _count_strong(da1, kp1, ka1, kb1, strong) + _count_strong(da2, kp2, ka2, kb2, strong)
+        if unmatched > sv_max_unmatched:
+            continue
+        ia = kp1[ka1]
+        ib = kp1[kb1]
+        ja = kp2[ka2]
+        jb = kp2[kb2]
+        len1 = ib - ia + 1
+        len2 = jb - ja + 1
+        L = max(len1, len2)
+        x = resample(a, ia, ib, L)
+        y = resample(b, ja, jb, L)
+        band = min(band_max, max(band_min, int(band_fraction * L)))
+        v_of_u, run, cost = align_segment(x, y, penalty, band)
+        nvalid += 1
+        scale1 = (L - 1) / (len1 - 1)
+        scale2 = (len2 - 1) / (L - 1)
+        for i in range(ia, ib + 1):
+            uf = (i - ia) * scale1
+            u0 = int(np.floor(uf))
+            if u0 >= L - 1:
+                u0 = L - 2
+            f = uf - u0
+            v = (1.0 - f) * v_of_u[u0] + f * v_of_u[u0 + 1]
+            ur = u0 if f < 0.5 else u0 + 1
+            if run[ur] > occlusion_run:
+                continue  # part of a horizontal run: x has no partner (occluded in view 2)
+            out_j[i] = ja + v * scale2
+            out_cost[i] = cost[ur]
+    return kp1.shape[0], kp2.shape[0], npairs, nvalid, max(npairs - 1, 0)
+
+
+@njit(parallel=True, cache=True)
+def match_lines(I1, off1, I2, off2, lo, hi, threshold, radius, ncoef, max_dist,
+                sv_max_unmatched, sv_strength, penalty, band_fraction, band_min, band_max,
+                occlusion_run):
+    """Match every line pair; returns per line-1 sample partner position on line 2.
+
+    Args:
+        I1, I2: (N1, C), (N2, C) float32 flat samples of both images.
+        off1, off2: (L + 1,) int64 line offsets.
+        lo, hi: (N1,) int64 band of line-2 positions (relative to the line start)
+            that may hold the partner of each line-1 sample.
+    Returns:
+        j (N1,) float64: partner position on line 2 (relative), NaN when none;
+        cost (N1,) float32; anchor (N1,) bool: sample is a rough match;
+        stats (L, 5) int64: key points 1, key points 2, rough matches, valid
+        segments, segments.
+    """
+    L = off1.shape[0] - 1
+    N1 = I1.shape[0]
+    out_j = np.full(N1, np.nan)
+    out_cost = np.full(N1, np.nan, np.float32)
+    out_anchor = np.zeros(N1, np.bool_)
+    stats = np.zeros((L, 5), np.int64)
+    for l in prange(L):
+        s1 = off1[l]
+        e1 = off1[l + 1]
+        s2 = off2[l]
+        e2 = off2[l + 1]
+        if e1 - s1 < 3 or e2 - s2 < 3:
+            continue
+        r = match_one_line(
+            I1[s1:e1], I2[s2:e2], lo[s1:e1], hi[s1:e1], threshold, radius, ncoef, max_dist,
+            sv_max_unmatched, sv_strength, penalty, band_fraction, band_min, band_max,
+            occlusion_run, out_j[s1:e1], out_cost[s1:e1], out_anchor[s1:e1],
+        )
+        stats[l, 0] = r[0]
+        stats[l, 1] = r[1]
+        stats[l, 2] = r[2]
+        stats[l, 3] = r[3]
+        stats[l, 4] = r[4]
+    return out_j, out_cost, out_anchor, stats
+
+
+@njit(parallel=True, cache=True)
+def depth_runs_filter(depth, line_of, jump, min_run):
+    """S_p (paper §4.5): keep points whose depth continues their neighbours'.
+
+    Points are in line order (``line_of`` non-decreasing, samples increasing
+    along each line). A relative depth change above ``jump`` between consecutive
+    points starts a new run; runs shorter than ``min_run`` points are isolated
+    depth spikes (mismatches) and are dropped. Returns a keep mask.
+    """
+    n = depth.shape[0]
+    keep = np.zeros(n, np.bool_)
+    # Line boundaries.
+    starts = np.empty(n + 1, np.int64)
+    ns = 0
+    for i in range(n):
+        if i == 0 or line_of[i] != line_of[i - 1]:
+            starts[ns] = i
+            ns += 1
+    starts[ns] = n
+    for s in prange(ns):
+        a = starts[s]
+        e = starts[s + 1]
+        r0 = a
+        for i in range(a, e + 1):
+            brk = i == e
+            if not brk:
+                if i > a:
+                    d0 = depth[i - 1]
+                    d1 = depth[i]
+                    if abs(d1 - d0) > jump * min(d0, d1):
+                        brk = True
+            if brk:
+                if i - r0 >= min_run:
+                    for k in range(r0, i):
+                        keep[k] = True
+                r0 = i
+    return keep

@@ -1,0 +1,234 @@
+"""The pair pipeline: two photos -> geometry -> SeFM matches -> points, mesh, model.
+
+Stages run in order, each timed; :func:`reconstruct_pair` works on arrays and
+returns a :class:`PairResult`, :func:`write_pair_outputs` writes it, and
+:func:`run_pair` does both from file names (what ``sefm-recon pair`` calls).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+
+from . import __version__
+from .config import Config
+from .errors import InputError
+from .geometry.two_view import TwoView, estimate_two_view, sift_correspondences, with_known_pose
+from .geometry.undistort import WorkingView, make_working_view
+from .io.cameras import camera_to_string, infer_camera, parse_camera
+from .io.images import read_image, to_gray
+from .matching.sefm import DenseMatches, match_pair
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass
+class PairResult:
+    """Everything the pair pipeline found; coordinates in the original images."""
+
+    uv1: np.ndarray  #: (N, 2) matches in image 1 (original pixels, COLMAP convention)
+    uv2: np.ndarray  #: (N, 2)
+    score: np.ndarray  #: (N,)
+    xyz: np.ndarray  #: (N, 3) points in camera 1's frame (world = camera 1)
+    rgb: np.ndarray  #: (N, 3) uint8 colours from image 1
+    normals: np.ndarray | None  #: (N, 3)
+    camera1: pycolmap.Camera
+    camera2: pycolmap.Camera
+    R: np.ndarray  #: cam2_from_cam1
+    t: np.ndarray
+    image_size: list  #: [[w1, h1], [w2, h2]] original sizes
+    counts: dict = field(default_factory=dict)
+    timings: dict = field(default_factory=dict)
+    notes: dict = field(default_factory=dict)
+    mesh: tuple | None = None  #: (vertices, triangles, colours, normals)
+    view1: WorkingView | None = None
+    view2: WorkingView | None = None
+
+
+def resolve_cameras(path1, path2, img1, img2, camera: str | None, camera2: str | None):
+    """Cameras from the command line, else EXIF, else COLMAP's default; checked against the images."""
+    sizes = [(img1.shape[1], img1.shape[0]), (img2.shape[1], img2.shape[0])]
+    texts = [camera, camera2 if camera2 is not None else camera]
+    cams, sources = [], []
+    for i, (text, path, (w, h)) in enumerate(zip(texts, (path1, path2), sizes), start=1):
+        if text is not None:
+            cam = parse_camera(text, camera_id=i)
+            if (cam.width, cam.height) != (w, h):
+                which = "--camera2" if i == 2 and camera2 is not None else "--camera"
+                raise InputError(
+                    f"{which} is for a {cam.width}x{cam.height} image but image {i} ({Path(path).name}) "
+                    f"is {w}x{h}"
+                )
+            cams.append(cam)
+            sources.append("given")
+        else:
+            cam, source = infer_camera(path, w, h, camera_id=i)
+            cams.append(cam)
+            sources.append(source)
+    for i, (cam, src) in enumerate(zip(cams, sources), start=1):
+        logger.info("camera %d (%s): %s", i, src, camera_to_string(cam))
+    return cams[0], cams[1], sources
+
+
+def reconstruct_pair(
+    img1: np.ndarray,
+    img2: np.ndarray,
+    camera1: pycolmap.Camera,
+    camera2: pycolmap.Camera,
+    cfg: Config,
+    pose: tuple[np.ndarray, np.ndarray] | None = None,
+    progress: bool = False,
+) -> PairResult:
+    """Run every stage on two decoded photos.
+
+    Args:
+        img1, img2: (H, W, 3) uint8 RGB, original resolution.
+        camera1, camera2: their cameras (original resolution).
+        pose: known ``(R, t)`` cam2_from_cam1; estimated from SIFT when None.
+    """
+    timings: dict[str, float] = {}
+    t0 = time.perf_counter()
+    v1 = make_working_view(img1, camera1, cfg.output.max_size)
+    v2 = make_working_view(img2, camera2, cfg.output.max_size)
+    timings["load"] = time.perf_counter() - t0
+    if v1.scale < 1 or v2.scale < 1:
+        logger.info("working at %dx%d and %dx%d", *v1.size, *v2.size)
+
+    t0 = time.perf_counter()
+    xy1, xy2 = sift_correspondences(to_gray(v1.image), to_gray(v2.image), cfg.sift.max_features, cfg.sift.max_ratio)
+    if pose is None:
+        g = cfg.geometry
+        tv = estimate_two_view(xy1, xy2, v1.K, v2.K, v1.size, v2.size, g.min_inliers, g.ransac_max_error,
+                               g.min_tri_angle_deg)
+    else:
+        tv = with_known_pose(v1.K, v2.K, pose[0], pose[1], xy1, xy2, cfg.geometry.ransac_max_error)
+    timings["two_view"] = time.perf_counter() - t0
+
+    dm: DenseMatches = match_pair(v1.image, v2.image, tv, cfg, progress=progress)
+    timings.update(dm.timings)
+
+    t0 = time.perf_counter()
+    from .reconstruct.points import clean_points, estimate_normals, sample_colors
+
+    rgb = sample_colors(v1.image, dm.uv1) if len(dm.uv1) else np.zeros((0, 3), np.uint8)
+    keep = np.ones(len(dm.xyz), bool)
+    if cfg.output.clean_outliers and len(dm.xyz) > 32:
+        keep = clean_points(dm.xyz)
+    xyz, uv1w, uv2w, score, rgb = dm.xyz[keep], dm.uv1[keep], dm.uv2[keep], dm.score[keep], rgb[keep]
+    centres = np.stack([np.zeros(3), -tv.R.T @ tv.t])
+    normals = estimate_normals(xyz, centres) if len(xyz) >= 3 else None
+    timings["points"] = time.perf_counter() - t0
+
+    counts = {
+        "sift_matches": int(tv.num_sift_matches),
+        "sift_inliers": int(len(tv.kp1)),
+        **dm.counts,
+        "points": int(len(xyz)),
+    }
+    result = PairResult(
+        uv1=v1.to_original(uv1w), uv2=v2.to_original(uv2w), score=score, xyz=xyz, rgb=rgb, normals=normals,
+        camera1=camera1, camera2=camera2, R=tv.R, t=tv.t,
+        image_size=[[img1.shape[1], img1.shape[0]], [img2.shape[1], img2.shape[0]]],
+        counts=counts, timings=timings, view1=v1, view2=v2,
+        notes={"pose": tv.source},
+    )
+    if cfg.output.mesh:
+        t0 = time.perf_counter()
+        result.mesh = _mesh(result, cfg)
+        timings["mesh"] = time.perf_counter() - t0
+    return result
+
+
+def _mesh(result: PairResult, cfg: Config):
+    from .reconstruct.mesh import poisson_mesh
+
+    if result.normals is None or len(result.xyz) < 100:
+        logger.warning("too few points (%d) for a mesh: mesh.ply not written", len(result.xyz))
+        return None
+    return poisson_mesh(result.xyz, result.normals, result.rgb, depth=cfg.output.poisson_depth,
+                        density_quantile=cfg.output.density_quantile, max_points=cfg.output.mesh_max_points)
+
+
+def build_report(result: PairResult, cfg: Config, names: tuple[str, str]) -> dict:
+    """The ``report.json`` contents (see CONTRACT.md)."""
+    from .io.cameras import camera_to_string as cts
+
+    return {
+        "version": __version__,
+        "images": list(names),
+        "image_size": result.image_size,
+        "cameras": [cts(result.camera1), cts(result.camera2)],
+        "pose": {"R": result.R.tolist(), "t": result.t.tolist(), "source": result.notes.get("pose")},
+        "config": cfg.to_dict(),
+        "timings_s": {k: round(v, 4) for k, v in result.timings.items()},
+        "counts": result.counts,
+    }
+
+
+def write_pair_outputs(result: PairResult, cfg: Config, folder: Path, names: tuple[str, str]) -> dict:
+    """Write every output file of a pair into ``folder`` (a staging folder)."""
+    from .io.colmap_model import write_two_view_model
+    from .io.ply import write_mesh, write_point_cloud
+    from .io.visualize import draw_matches, write_image
+
+    t0 = time.perf_counter()
+    folder = Path(folder)
+    np.savez_compressed(folder / "matches.npz", uv1=result.uv1.astype(np.float32),
+                        uv2=result.uv2.astype(np.float32), score=result.score.astype(np.float32))
+    write_point_cloud(folder / "points.ply", result.xyz, result.rgb, result.normals)
+    if result.mesh is not None:
+        v, f, c, n = result.mesh
+        write_mesh(folder / "mesh.ply", v, f, c, n)
+    write_two_view_model(folder / "sparse", result.camera1, result.camera2, names[0], names[1], result.R,
+                         result.t, result.uv1, result.uv2, result.xyz, result.rgb,
+                         max_points=cfg.output.sparse_max_points)
+    if result.view1 is not None and result.view2 is not None:
+        # Drawn on the working images with working coordinates, for speed.
+        from .geometry.undistort import WorkingView  # noqa: F401
+
+        pic = draw_matches(_orig_or_work(result, 1), _orig_or_work(result, 2), result.uv1, result.uv2)
+        write_image(folder / "matches.png", pic)
+    result.timings["write"] = time.perf_counter() - t0
+    report = build_report(result, cfg, names)
+    (folder / "report.json").write_text(json.dumps(report, indent=2))
+    return report
+
+
+def _orig_or_work(result: PairResult, which: int) -> np.ndarray:
+    return result.notes[f"image{which}"] if f"image{which}" in result.notes else (
+        result.view1 if which == 1 else result.view2).image
+
+
+def run_pair(
+    image1: str | Path,
+    image2: str | Path,
+    out: str | Path,
+    cfg: Config,
+    camera: str | None = None,
+    camera2: str | None = None,
+    overwrite: bool = False,
+    progress: bool = False,
+    pose: tuple[np.ndarray, np.ndarray] | None = None,
+) -> dict:
+    """``sefm-recon pair``: read, reconstruct, write into ``out`` atomically; returns the report."""
+    from .io.output import StagedOutput, check_output_dir
+
+    check_output_dir(out, overwrite)  # fail before the long work, not after
+    t0 = time.perf_counter()
+    img1 = read_image(image1)
+    img2 = read_image(image2)
+    cam1, cam2, sources = resolve_cameras(image1, image2, img1, img2, camera, camera2)
+    result = reconstruct_pair(img1, img2, cam1, cam2, cfg, pose=pose, progress=progress)
+    result.notes["image1"], result.notes["image2"] = img1, img2
+    with StagedOutput(out, overwrite) as stage:
+        report = write_pair_outputs(result, cfg, stage, (Path(image1).name, Path(image2).name))
+        report["camera_sources"] = sources
+        report["timings_s"]["total"] = round(time.perf_counter() - t0, 4)
+        (stage / "report.json").write_text(json.dumps(report, indent=2))
+    return report
