@@ -1,0 +1,277 @@
+"""Binary PLY point clouds and meshes (via open3d), written atomically.
+
+Point-cloud files carry the vertex properties ``x y z nx ny nz red green blue``
+(positions and normals as ``double``, the way open3d writes them; colours as
+``uchar``), binary little-endian -- the layout MeshLab, CloudCompare and COLMAP
+read. Properties whose data is absent (no normals, no colours) are omitted.
+
+Empty inputs: open3d refuses to write a cloud or mesh with no vertices, and an
+empty reconstruction is almost always a bug upstream, so the writers raise
+``ValueError`` for N = 0 instead of producing an empty file.
+
+Every writer writes to a hidden temporary file next to the target (same folder,
+same extension, because open3d and OpenCV pick the format from the extension)
+and then ``os.replace``-s it into place, so a reader never sees a half-written
+file. :func:`atomic_path` is shared by the other writers in ``sefm_recon.io``.
+
+open3d is imported lazily inside the functions (its import costs ~1 s).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+import secrets
+from pathlib import Path
+from typing import Iterator
+
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+__all__ = [
+    "atomic_path",
+    "read_mesh",
+    "read_ply_header",
+    "read_point_cloud",
+    "write_mesh",
+    "write_point_cloud",
+]
+
+
+@contextlib.contextmanager
+def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
+    """Yield a temporary path to write to; on success move it onto ``path``.
+
+    The temporary name is ``.<name>.tmp-<random><suffix>`` in the same folder as
+    ``path`` (so ``os.replace`` is atomic and the extension is preserved). The
+    file is not created here -- the writer creates it, with normal permissions.
+    On an exception the temporary file is removed and ``path`` is untouched.
+    The parent folder is created if missing.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.stem}.tmp-{secrets.token_hex(4)}{path.suffix}")
+    try:
+        yield tmp
+        if not tmp.exists():
+            raise OSError(f"writer did not create {tmp}")
+        os.replace(tmp, path)
+    finally:
+        with contextlib.suppress(FileNotFoundError):
+            tmp.unlink()
+
+
+def read_ply_header(path: str | os.PathLike) -> dict:
+    """Parse a PLY header (pure Python, no open3d).
+
+    Returns ``{"format": "binary_little_endian" | "ascii" | ...,
+    "elements": {name: {"count": int, "properties": [(type, name), ...]}}}``;
+    list properties appear as ``("list <count type> <item type>", name)``.
+    """
+    with open(path, "rb") as f:
+        if f.readline().strip() != b"ply":
+            raise ValueError(f"{path}: not a PLY file")
+        fmt = None
+        elements: dict[str, dict] = {}
+        current = None
+        for raw in f:
+            words = raw.decode("ascii", "replace").split()
+            if not words or words[0] in ("comment", "obj_info"):
+                continue
+            if words[0] == "end_header":
+                break
+            if words[0] == "format":
+                fmt = words[1]
+            elif words[0] == "element":
+                current = {"count": int(words[2]), "properties": []}
+                elements[words[1]] = current
+            elif words[0] == "property" and current is not None:
+                if words[1] == "list":
+                    current["properties"].append((" ".join(words[1:4]), words[4]))
+                else:
+                    current["properties"].append((words[1], words[2]))
+        else:
+            raise ValueError(f"{path}: PLY header has no end_header")
+    return {"format": fmt, "elements": elements}
+
+
+def _check_xyz(xyz: np.ndarray, name: str = "xyz") -> np.ndarray:
+    xyz = np.asarray(xyz, dtype=np.float64)
+    if xyz.ndim != 2 or xyz.shape[1] != 3:
+        raise ValueError(f"{name} must be (N, 3), got {xyz.shape}")
+    return xyz
+
+
+def _check_rgb(rgb: np.ndarray | None, n: int, name: str = "rgb") -> np.ndarray | None:
+    if rgb is None:
+        return None
+    rgb = np.asarray(rgb)
+    if rgb.shape != (n, 3):
+        raise ValueError(f"{name} must be ({n}, 3), got {rgb.shape}")
+    if rgb.dtype != np.uint8:
+        raise ValueError(f"{name} must be uint8, got {rgb.dtype}")
+    return rgb
+
+
+def _to_float_colors(rgb: np.ndarray) -> np.ndarray:
+    # open3d stores colours as doubles in [0, 1] and writes round(c * 255): exact.
+    return rgb.astype(np.float64) / 255.0
+
+
+def _to_uint8_colors(c: np.ndarray) -> np.ndarray:
+    return np.clip(np.rint(np.asarray(c) * 255.0), 0, 255).astype(np.uint8)
+
+
+def write_point_cloud(
+    path: str | os.PathLike,
+    xyz: np.ndarray,
+    rgb: np.ndarray | None,
+    normals: np.ndarray | None = None,
+) -> Path:
+    """Write a binary little-endian PLY point cloud atomically.
+
+    Args:
+        path: target ``.ply`` file (parent folders are created).
+        xyz: (N, 3) float positions, world units.
+        rgb: (N, 3) uint8 colours, or None (no colour properties).
+        normals: (N, 3) float normals, or None (no normal properties).
+
+    Vertex properties: ``x y z nx ny nz red green blue`` (double x6, uchar x3).
+    Raises ``ValueError`` for N = 0 or mismatched shapes; ``OSError`` if the
+    write fails. Returns ``Path(path)``.
+    """
+    import open3d as o3d
+
+    path = Path(path)
+    if path.suffix.lower() != ".ply":
+        raise ValueError(f"point cloud path must end in .ply: {path}")
+    xyz = _check_xyz(xyz)
+    n = len(xyz)
+    if n == 0:
+        raise ValueError("refusing to write an empty point cloud (N = 0)")
+    rgb = _check_rgb(rgb, n)
+    pcd = o3d.geometry.PointCloud()
+    pcd.points = o3d.utility.Vector3dVector(xyz)
+    if normals is not None:
+        normals = _check_xyz(normals, "normals")
+        if len(normals) != n:
+            raise ValueError(f"normals must be ({n}, 3), got {normals.shape}")
+        pcd.normals = o3d.utility.Vector3dVector(normals)
+    if rgb is not None:
+        pcd.colors = o3d.utility.Vector3dVector(_to_float_colors(rgb))
+    with atomic_path(path) as tmp:
+        ok = o3d.io.write_point_cloud(str(tmp), pcd, write_ascii=False, compressed=False)
+        if not ok:
+            raise OSError(f"open3d failed to write {path}")
+    log.info("wrote %d points to %s", n, path)
+    return path
+
+
+def read_point_cloud(
+    path: str | os.PathLike,
+) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+    """Read a point cloud.
+
+    Returns ``(xyz (N, 3) float64, rgb (N, 3) uint8 or None, normals (N, 3)
+    float64 or None)``; colours/normals are None when the file has none.
+    Raises ``FileNotFoundError`` if the file is missing.
+    """
+    import open3d as o3d
+
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(path)
+    pcd = o3d.io.read_point_cloud(str(path))
+    xyz = np.asarray(pcd.points, dtype=np.float64).reshape(-1, 3).copy()
+    rgb = _to_uint8_colors(pcd.colors) if pcd.has_colors() else None
+    normals = np.asarray(pcd.normals, dtype=np.float64).copy() if pcd.has_normals() else None
+    return xyz, rgb, normals
+
+
+def write_mesh(
+    path: str | os.PathLike,
+    vertices: np.ndarray,
+    triangles: np.ndarray,
+    vertex_colors: np.ndarray | None = None,
+    vertex_normals: np.ndarray | None = None,
+) -> Path:
+    """Write a binary little-endian PLY triangle mesh atomically.
+
+    Args:
+        path: target ``.ply`` file.
+        vertices: (V, 3) float positions.
+        triangles: (F, 3) int vertex indices (counter-clockwise = front).
+        vertex_colors: (V, 3) uint8 or None.
+        vertex_normals: (V, 3) float or None.
+
+    Raises ``ValueError`` for V = 0, bad shapes or out-of-range indices.
+    Returns ``Path(path)``.
+    """
+    import open3d as o3d
+
+    path = Path(path)
+    if path.suffix.lower() != ".ply":
+        raise ValueError(f"mesh path must end in .ply: {path}")
+    vertices = _check_xyz(vertices, "vertices")
+    v = len(vertices)
+    if v == 0:
+        raise ValueError("refusing to write an empty mesh (0 vertices)")
+    triangles = np.asarray(triangles)
+    if triangles.size == 0:
+        triangles = triangles.reshape(0, 3)
+    if triangles.ndim != 2 or triangles.shape[1] != 3:
+        raise ValueError(f"triangles must be (F, 3), got {triangles.shape}")
+    if triangles.size and (triangles.min() < 0 or triangles.max() >= v):
+        raise ValueError("triangle indices out of range")
+    vertex_colors = _check_rgb(vertex_colors, v, "vertex_colors")
+    mesh = o3d.geometry.TriangleMesh()
+    mesh.vertices = o3d.utility.Vector3dVector(vertices)
+    mesh.triangles = o3d.utility.Vector3iVector(triangles.astype(np.int32))
+    if vertex_normals is not None:
+        vertex_normals = _check_xyz(vertex_normals, "vertex_normals")
+        if len(vertex_normals) != v:
+            raise ValueError(f"vertex_normals must be ({v}, 3), got {vertex_normals.shape}")
+        mesh.vertex_normals = o3d.utility.Vector3dVector(vertex_normals)
+    if vertex_colors is not None:
+        mesh.vertex_colors = o3d.utility.Vector3dVector(_to_float_colors(vertex_colors))
+    with atomic_path(path) as tmp:
+        ok = o3d.io.write_triangle_mesh(
+            str(tmp),
+            mesh,
+            write_ascii=False,
+            compressed=False,
+            write_vertex_normals=vertex_normals is not None,
+            write_vertex_colors=vertex_colors is not None,
+            write_triangle_uvs=False,
+        )
+        if not ok:
+            raise OSError(f"open3d failed to write {path}")
+    log.info("wrote mesh (%d vertices, %d triangles) to %s", v, len(triangles), path)
+    return path
+
+
+def read_mesh(
+    path: str | os.PathLike,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray | None]:
+    """Read a triangle mesh.
+
+    Returns ``(vertices (V, 3) float64, triangles (F, 3) int64,
+    vertex_colors (V, 3) uint8 or None, vertex_normals (V, 3) float64 or None)``.
+    """
+    import open3d as o3d
+
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(path)
+    mesh = o3d.io.read_triangle_mesh(str(path))
+    vertices = np.asarray(mesh.vertices, dtype=np.float64).reshape(-1, 3).copy()
+    triangles = np.asarray(mesh.triangles, dtype=np.int64).reshape(-1, 3).copy()
+    colors = _to_uint8_colors(mesh.vertex_colors) if mesh.has_vertex_colors() else None
+    normals = (
+        np.asarray(mesh.vertex_normals, dtype=np.float64).copy()
+        if mesh.has_vertex_normals()
+        else None
+    )
+    return vertices, triangles, colors, normals

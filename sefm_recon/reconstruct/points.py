@@ -1,0 +1,154 @@
+"""Point-cloud post-processing: normals, outlier removal, colour sampling.
+
+Pure functions on numpy arrays. open3d is imported lazily inside the functions
+that use it (its import costs ~1 s).
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+__all__ = ["clean_points", "estimate_normals", "sample_colors"]
+
+
+def _as_xyz(xyz: np.ndarray) -> np.ndarray:
+    xyz = np.asarray(xyz, dtype=np.float64)
+    if xyz.ndim != 2 or xyz.shape[1] != 3:
+        raise ValueError(f"xyz must be (N, 3), got {xyz.shape}")
+    return xyz
+
+
+def _pcd(xyz: np.ndarray):
+    import open3d as o3d
+
+    pcd = o3d.geometry.PointCloud()
+    pcd.points = o3d.utility.Vector3dVector(np.ascontiguousarray(xyz, dtype=np.float64))
+    return pcd
+
+
+def estimate_normals(
+    xyz: np.ndarray,
+    camera_centers: np.ndarray,
+    k: int = 16,
+    radius: float | None = None,
+) -> np.ndarray:
+    """Unit normals by local PCA (open3d), oriented towards the first camera.
+
+    Args:
+        xyz: (N, 3) float points, world units. N >= 3.
+        camera_centers: (M, 3) or (3,) camera centres ``C = -R.T @ t`` (world).
+            Only the FIRST centre is used for orientation: each normal is flipped
+            so that ``dot(n, C0 - X) >= 0`` (it faces the reference camera, which
+            sees every point of a two-view reconstruction).
+        k: number of nearest neighbours (KNN search), or the cap on neighbours
+            when ``radius`` is given.
+        radius: if given, hybrid search: up to ``k`` neighbours within
+            ``radius`` (world units). Points with < 3 neighbours in the radius
+            get an arbitrary (but still camera-facing) normal from open3d.
+
+    Returns:
+        (N, 3) float64 unit normals. Non-finite input points get NaN normals
+        (they are excluded from the neighbour search).
+    """
+    import open3d as o3d
+
+    xyz = _as_xyz(xyz)
+    centers = np.asarray(camera_centers, dtype=np.float64).reshape(-1, 3)
+    if len(centers) == 0:
+        raise ValueError("need at least one camera centre to orient normals")
+    if k < 3:
+        raise ValueError(f"k must be >= 3, got {k}")
+    finite = np.isfinite(xyz).all(axis=1)
+    normals = np.full_like(xyz, np.nan)
+    pts = xyz[finite]
+    if len(pts) < 3:
+        raise ValueError(f"need at least 3 finite points for normals, got {len(pts)}")
+    pcd = _pcd(pts)
+    if radius is None:
+        param = o3d.geometry.KDTreeSearchParamKNN(knn=int(k))
+    else:
+        param = o3d.geometry.KDTreeSearchParamHybrid(radius=float(radius), max_nn=int(k))
+    pcd.estimate_normals(search_param=param, fast_normal_computation=False)
+    n = np.asarray(pcd.normals, dtype=np.float64).copy()
+    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+    flip = np.einsum("ij,ij->i", n, centers[0] - pts) < 0
+    n[flip] *= -1.0
+    normals[finite] = n
+    return normals
+
+
+def clean_points(
+    xyz: np.ndarray,
+    nb_neighbors: int = 16,
+    std_ratio: float = 2.5,
+) -> np.ndarray:
+    """Statistical outlier removal (open3d); returns a keep mask.
+
+    A point is kept when its mean distance to its ``nb_neighbors`` nearest
+    neighbours is below ``mean + std_ratio * std`` of that statistic over the
+    cloud. Non-finite points are always dropped. Clouds with at most
+    ``nb_neighbors`` finite points are returned unfiltered (all finite kept).
+
+    Args:
+        xyz: (N, 3) float points.
+
+    Returns:
+        (N,) bool mask, True = keep. Filter colours etc. with it.
+    """
+    xyz = _as_xyz(xyz)
+    keep = np.isfinite(xyz).all(axis=1)
+    idx = np.flatnonzero(keep)
+    if len(idx) <= nb_neighbors:
+        return keep
+    _, inliers = _pcd(xyz[idx]).remove_statistical_outlier(
+        nb_neighbors=int(nb_neighbors), std_ratio=float(std_ratio)
+    )
+    mask = np.zeros(len(xyz), dtype=bool)
+    mask[idx[np.asarray(inliers, dtype=np.int64)]] = True
+    log.debug("clean_points: kept %d of %d", int(mask.sum()), len(xyz))
+    return mask
+
+
+def sample_colors(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """Bilinear colour lookup at COLMAP pixel coordinates.
+
+    Args:
+        image: (H, W, 3) uint8 (or (H, W) grey, or float) image.
+        uv: (N, 2) float pixel coordinates, COLMAP convention (centre of the
+            top-left pixel is (0.5, 0.5)). Positions outside the image are
+            clamped to the border pixels; non-finite uv give 0.
+
+    Returns:
+        (N, 3) uint8 (or (N,) for a 2-D image), rounded to nearest.
+    """
+    img = np.asarray(image)
+    if img.ndim not in (2, 3):
+        raise ValueError(f"image must be (H, W) or (H, W, C), got {img.shape}")
+    uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
+    h, w = img.shape[:2]
+    ok = np.isfinite(uv).all(axis=1)
+    # array coordinates: pixel (row i, col j) has its centre at (j + 0.5, i + 0.5)
+    x = np.clip(np.where(ok, uv[:, 0], 0.5) - 0.5, 0.0, w - 1.0)
+    y = np.clip(np.where(ok, uv[:, 1], 0.5) - 0.5, 0.0, h - 1.0)
+    x0 = np.minimum(np.floor(x).astype(np.int64), max(w - 2, 0))
+    y0 = np.minimum(np.floor(y).astype(np.int64), max(h - 2, 0))
+    x1 = np.minimum(x0 + 1, w - 1)
+    y1 = np.minimum(y0 + 1, h - 1)
+    fx = x - x0
+    fy = y - y0
+    if img.ndim == 3:
+        fx = fx[:, None]
+        fy = fy[:, None]
+    f = img.astype(np.float32, copy=False)
+    top = f[y0, x0] * (1 - fx) + f[y0, x1] * fx
+    bot = f[y1, x0] * (1 - fx) + f[y1, x1] * fx
+    out = top * (1 - fy) + bot * fy
+    out[~ok] = 0
+    if np.issubdtype(img.dtype, np.integer):
+        info = np.iinfo(img.dtype)
+        return np.clip(np.rint(out), info.min, info.max).astype(img.dtype)
+    return out.astype(img.dtype)
