@@ -196,7 +196,7 @@ def render_points(
 
     p = max(1, int(point_size))
     if p > 1:
-        offs = np.arange(-(p - 1) // 2, p // 2 + 1)
+        offs = np.arange(-((p - 1) // 2), p // 2 + 1)  # p offsets: -(p-1)//2 .. p//2
         dy, dx = np.meshgrid(offs, offs, indexing="ij")
         row = (row[:, None] + dy.ravel()).ravel()
         col = (col[:, None] + dx.ravel()).ravel()

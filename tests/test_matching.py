@@ -1,0 +1,99 @@
+"""The SeFM stages on sequences with known answers."""
+
+import numpy as np
+
+from sefm_recon.matching import dense, rough
+from sefm_recon.matching.validity import depth_continuity
+
+
+def _signal(n, seed=0):
+    rng = np.random.default_rng(seed)
+    x = np.cumsum(rng.normal(0, 6, n))
+    x = np.convolve(x, np.ones(3) / 3, mode="same")
+    return (x - x.min()) / (np.ptp(x) + 1e-9) * 200 + 20
+
+
+def test_intensity_jumps_match_the_paper():
+    a = np.array([0, 0, 10, 30, 30, 30], np.float32)
+    np.testing.assert_allclose(rough.intensity_jumps(a), [0, 5, 15, 10, 0, 0])
+    # one key point per edge (the local maximum), none on flat parts
+    np.testing.assert_array_equal(rough.detect_keypoints(a, 4.0), [2])
+
+
+def test_fft_descriptors_ignore_gain_and_offset_but_not_shape():
+    a = _signal(200)
+    kp = rough.detect_keypoints(a, 3.0)
+    assert len(kp) > 10
+    d = rough.fft_descriptors(a, kp)
+    d_gain = rough.fft_descriptors(1.3 * a + 15, kp)
+    np.testing.assert_allclose(d, d_gain, atol=1e-3)
+    d_other = rough.fft_descriptors(a[::-1].copy(), kp)
+    assert np.linalg.norm(d - d_other) > 1.0
+
+
+def test_rough_dp_recovers_a_shift_and_skips_extra_keypoints():
+    a = _signal(400, seed=1)
+    shift = 17
+    b = np.r_[_signal(shift, seed=9), a][:400]  # b[i + shift] = a[i]
+    p = rough.detect_keypoints(a, 3.0)
+    q = rough.detect_keypoints(b, 3.0)
+    pairs = rough.align_keypoints(p, q, rough.fft_descriptors(a, p), rough.fft_descriptors(b, q), max_dist=0.8)
+    assert len(pairs) > 0.7 * len(p[p < 400 - shift - 10])
+    assert np.all(np.diff(pairs[:, 0]) > 0) and np.all(np.diff(pairs[:, 1]) > 0)  # ordered
+    disp = q[pairs[:, 1]] - p[pairs[:, 0]]
+    assert np.mean(disp == shift) > 0.95
+
+
+def test_rough_dp_respects_the_search_band():
+    a = _signal(300, seed=2)
+    p = rough.detect_keypoints(a, 3.0)
+    d = rough.fft_descriptors(a, p)
+    lo = np.full(300, 1000)  # nothing allowed
+    assert len(rough.align_keypoints(p, p, d, d, 0.8, lo=lo, hi=lo + 5)) == 0
+    full = rough.align_keypoints(p, p, d, d, 0.8)
+    np.testing.assert_array_equal(full[:, 0], full[:, 1])
+    assert len(full) == len(p)
+
+
+def test_dense_dp_aligns_a_shifted_sequence():
+    x = _signal(120, seed=3)
+    y = np.r_[x[5:], x[-1] * np.ones(5)]  # y[v] = x[v + 5]: partner of u is u - 5
+    v, run, cost = dense.align_segment(x, y, penalty=20.0, band=20)
+    u = np.arange(120)
+    interior = (u >= 10) & (u < 110)
+    np.testing.assert_allclose(v[interior], u[interior] - 5)
+    assert np.all(np.diff(v) >= 0)
+    assert cost[interior].max() < 1e-3
+    assert np.all(run[interior] == 1)
+
+
+def test_dense_cost_is_sampling_insensitive():
+    # y samples x half-way between its samples: the paper's cost sees no mismatch
+    x = _signal(100, seed=4)
+    y = np.r_[0.5 * (x[:-1] + x[1:]), x[-1]]
+    v, _, cost = dense.align_segment(x, y, penalty=20.0, band=10)
+    assert np.abs(v[5:-5] - np.arange(5, 95)).max() <= 1
+    assert np.median(cost) < 1e-3
+
+
+def test_dense_dp_marks_occlusions():
+    x = _signal(100, seed=5)
+    y = np.r_[x[:40], x[60:], x[60:80]]  # x[40:60] is not in y
+    v, run, _ = dense.align_segment(x, y, penalty=5.0, band=40)
+    assert np.mean(run[42:58] > 2) > 0.8
+    assert np.all(run[:35] == 1)
+
+
+def test_resample_is_linear():
+    np.testing.assert_allclose(dense.resample(np.array([0.0, 10.0]), 5), [0, 2.5, 5, 7.5, 10])
+
+
+def test_depth_continuity_drops_spikes_but_keeps_steps():
+    depth = np.r_[np.linspace(5, 5.1, 20), 9.0, np.linspace(5.1, 5.2, 20), np.linspace(3, 3.1, 20)]
+    line = np.zeros(len(depth), np.int64)
+    keep = depth_continuity(depth, line, jump=0.05, min_run=3)
+    assert not keep[20]  # the isolated spike
+    assert keep[:20].all() and keep[21:].all()  # both sides of the real step survive
+    # runs do not continue across lines
+    line2 = np.r_[np.zeros(2, np.int64), np.ones(5, np.int64)]
+    np.testing.assert_array_equal(depth_continuity(np.ones(7), line2, 0.05, 3), [False] * 2 + [True] * 5)
