@@ -199,7 +199,10 @@ def with_known_pose(K1, K2, R, t, xy1, xy2, max_error: float = 2.0) -> TwoView:
 
     The kept matches only serve to bound the depth range searched by the matcher.
     """
-    tv = TwoView(np.asarray(K1, float), np.asarray(K2, float), np.asarray(R, float), np.asarray(t, float).reshape(3),
+    # Poses read from text are rounded: project R back onto the rotations.
+    U, _, Vt = np.linalg.svd(np.asarray(R, float))
+    R = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
+    tv = TwoView(np.asarray(K1, float), np.asarray(K2, float), R, np.asarray(t, float).reshape(3),
                  source="given", num_sift_matches=len(xy1))
     if len(xy1):
         keep = epipolar_distances(tv.F, xy1, xy2) < max_error

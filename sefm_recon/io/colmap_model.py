@@ -192,7 +192,7 @@ def write_two_view_model(
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
         shutil.rmtree(old, ignore_errors=True)
-    log.info(
+    log.debug(
         "wrote COLMAP model (%d points, mean reprojection error %.3f px) to %s",
         rec.num_points3D(), rec.compute_mean_reprojection_error(), out_dir,
     )

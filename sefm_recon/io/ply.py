@@ -165,7 +165,7 @@ def write_point_cloud(
         ok = o3d.io.write_point_cloud(str(tmp), pcd, write_ascii=False, compressed=False)
         if not ok:
             raise OSError(f"open3d failed to write {path}")
-    log.info("wrote %d points to %s", n, path)
+    log.debug("wrote %d points to %s", n, path)
     return path
 
 
@@ -248,7 +248,7 @@ def write_mesh(
         )
         if not ok:
             raise OSError(f"open3d failed to write {path}")
-    log.info("wrote mesh (%d vertices, %d triangles) to %s", v, len(triangles), path)
+    log.debug("wrote mesh (%d vertices, %d triangles) to %s", v, len(triangles), path)
     return path
 
 

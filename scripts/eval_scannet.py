@@ -1,0 +1,105 @@
+"""Relative pose and epipolar accuracy on the ScanNet pairs of ../shared/data/real/scannet.
+
+    .venv/bin/python scripts/eval_scannet.py [--pose estimated|true] [--json out.json]
+
+For each pair: the relative pose error (rotation angle, translation direction
+angle) of the estimated two-view geometry against the truth, and for the dense
+SeFM matches the distance from the TRUE epipolar line (median, share within
+1 px and 2 px) and how many there are. Intrinsics in pairs_with_gt.txt use the
+OpenCV convention; 0.5 is added to cx, cy for COLMAP's.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+
+from sefm_recon.config import load_config
+from sefm_recon.errors import InputError
+from sefm_recon.geometry.two_view import TwoView, epipolar_distances
+from sefm_recon.io.images import read_image
+from sefm_recon.pipeline import reconstruct_pair
+
+ROOT = Path(__file__).resolve().parents[1]
+DATA = ROOT.parent / "shared" / "data" / "real" / "scannet"
+
+
+def read_pairs(folder: Path):
+    for line in (folder / "pairs_with_gt.txt").read_text().splitlines():
+        f = line.split()
+        if len(f) < 38:
+            continue
+        K0 = np.array(f[4:13], float).reshape(3, 3)
+        K1 = np.array(f[13:22], float).reshape(3, 3)
+        T = np.array(f[22:38], float).reshape(4, 4)
+        for K in (K0, K1):
+            K[0, 2] += 0.5
+            K[1, 2] += 0.5
+        yield f[0], f[1], K0, K1, T[:3, :3], T[:3, 3]
+
+
+def camera(K, w, h, cid):
+    return pycolmap.Camera(camera_id=cid, model="PINHOLE", width=w, height=h,
+                           params=[K[0, 0], K[1, 1], K[0, 2], K[1, 2]])
+
+
+def angle_deg(R):
+    return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1))))
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--pose", choices=["estimated", "true"], default="estimated")
+    ap.add_argument("--data", type=Path, default=DATA)
+    ap.add_argument("--json", type=Path)
+    ap.add_argument("--set", dest="overrides", action="append", default=[])
+    args = ap.parse_args()
+    logging.basicConfig(level=logging.WARNING)
+    cfg = load_config(None, ["output.mesh=false", *args.overrides])
+    rows = []
+    for n0, n1, K0, K1, R, t in read_pairs(args.data):
+        img0, img1 = read_image(args.data / n0), read_image(args.data / n1)
+        cam0 = camera(K0, img0.shape[1], img0.shape[0], 1)
+        cam1 = camera(K1, img1.shape[1], img1.shape[0], 2)
+        row = {"pair": f"{n0} {n1}"}
+        try:
+            res = reconstruct_pair(img0, img1, cam0, cam1, cfg, pose=(R, t) if args.pose == "true" else None)
+        except InputError as err:
+            row["error"] = str(err)
+            rows.append(row)
+            print(f"{n0[:22]:22s} {n1[-10:]:10s}  failed: {err}")
+            continue
+        row["rot_err_deg"] = angle_deg(R.T @ res.R)
+        cos = float(t @ res.t / np.linalg.norm(t) / np.linalg.norm(res.t))
+        row["trans_err_deg"] = float(np.degrees(np.arccos(np.clip(cos, -1, 1))))
+        F = TwoView(K0, K1, R, t).F
+        d = epipolar_distances(F, res.uv1, res.uv2)
+        row.update(matches=int(len(d)), epi_median_px=float(np.median(d)) if len(d) else None,
+                   epi_within_1px=float(np.mean(d <= 1)) if len(d) else None,
+                   epi_within_2px=float(np.mean(d <= 2)) if len(d) else None,
+                   sift_inliers=res.counts["sift_inliers"])
+        rows.append(row)
+        print(f"{n0[:22]:22s} {n1[-10:]:10s}  R {row['rot_err_deg']:6.2f} deg  t {row['trans_err_deg']:6.2f} deg  "
+              f"{row['matches']:7d} matches  epipolar median {row['epi_median_px'] or 0:.2f} px, "
+              f"<=1px {row['epi_within_1px'] or 0:.2f}")
+    ok = [r for r in rows if "error" not in r]
+    if ok:
+        summary = {
+            "pairs": len(rows), "failed": len(rows) - len(ok),
+            "rot_err_deg_median": float(np.median([r["rot_err_deg"] for r in ok])),
+            "trans_err_deg_median": float(np.median([r["trans_err_deg"] for r in ok])),
+            "matches_median": float(np.median([r["matches"] for r in ok])),
+            "epi_median_px_median": float(np.median([r["epi_median_px"] for r in ok if r["epi_median_px"] is not None])),
+        }
+        print(json.dumps(summary))
+        if args.json:
+            args.json.write_text(json.dumps({"pose": args.pose, "rows": rows, "summary": summary}, indent=1))
+
+
+if __name__ == "__main__":
+    main()
