@@ -89,10 +89,21 @@ def match_descriptors(desc1: np.ndarray, desc2: np.ndarray, max_ratio: float = 0
     return np.asarray(pairs, dtype=np.uint32).reshape(-1, 2)
 
 
-def sift_correspondences(gray1, gray2, max_features: int = 8192, max_ratio: float = 0.8):
-    """Putative SIFT correspondences ``(xy1 (M, 2), xy2 (M, 2))`` between two images."""
+def sift_correspondences(gray1, gray2, max_features: int = 8192, max_ratio: float = 0.8, min_features: int = 0,
+                         names: tuple[str, str] = ("image 1", "image 2")):
+    """Putative SIFT correspondences ``(xy1 (M, 2), xy2 (M, 2))`` between two images.
+
+    Raises :class:`InputError` when an image has fewer than ``min_features``
+    SIFT features (a textureless image: nothing to estimate geometry from).
+    """
     xy1, d1 = extract_sift(gray1, max_features)
     xy2, d2 = extract_sift(gray2, max_features)
+    for xy, name in ((xy1, names[0]), (xy2, names[1])):
+        if len(xy) < min_features:
+            raise InputError(
+                f"{name} has too little texture: {len(xy)} SIFT features found, at least {min_features} are "
+                "needed to estimate the geometry (a blank, flat or heavily blurred image cannot be matched)"
+            )
     m = match_descriptors(d1, d2, max_ratio)
     logger.info("SIFT: %d and %d features, %d putative matches", len(xy1), len(xy2), len(m))
     return xy1[m[:, 0]], xy2[m[:, 1]]
@@ -114,45 +125,72 @@ def estimate_two_view(
     min_inliers: int = 30,
     max_error: float = 2.0,
     min_tri_angle_deg: float = 0.5,
+    focal_known: bool = True,
 ) -> TwoView:
     """Essential matrix by RANSAC and the relative pose, through pycolmap.
 
     Args:
         xy1, xy2: (M, 2) putative correspondences, working pixel coordinates.
         size1, size2: (width, height) of the working images.
+        focal_known: False when ``K1``/``K2`` are guesses (no EXIF, no --camera):
+            then a pure rotation cannot be told from its triangulation angles,
+            and the homography's own test (:func:`rotation_homography`) is used.
     Raises:
         InputError: too few inliers (unrelated images or too little overlap), or
             no baseline (the same photo twice, or a pure rotation).
     """
-    if len(xy1) < min_inliers:
-        raise InputError(
-            f"too little overlap between the images: {len(xy1)} SIFT matches found, "
-            f"at least {min_inliers} geometric inliers are needed"
-        )
     cam1 = _pinhole(K1, *size1, 1)
     cam2 = _pinhole(K2, *size2, 2)
-    opts = pycolmap.TwoViewGeometryOptions()
-    opts.compute_relative_pose = True
-    opts.ransac.max_error = float(max_error)
-    opts.ransac.random_seed = 0
-    opts.min_num_inliers = int(min_inliers)
-    opts.detect_watermark = False
-    matches = np.stack([np.arange(len(xy1)), np.arange(len(xy1))], 1).astype(np.uint32)
-    tvg = pycolmap.estimate_calibrated_two_view_geometry(
-        cam1, np.ascontiguousarray(xy1, np.float64), cam2, np.ascontiguousarray(xy2, np.float64), matches, opts
-    )
-    inliers = np.asarray(tvg.inlier_matches, dtype=np.int64).reshape(-1, 2)
+
+    def ransac(min_num_inliers: int):
+        opts = pycolmap.TwoViewGeometryOptions()
+        opts.compute_relative_pose = True
+        opts.ransac.max_error = float(max_error)
+        opts.ransac.random_seed = 0
+        opts.min_num_inliers = int(min_num_inliers)
+        opts.detect_watermark = False
+        matches = np.stack([np.arange(len(xy1)), np.arange(len(xy1))], 1).astype(np.uint32)
+        tvg = pycolmap.estimate_calibrated_two_view_geometry(
+            cam1, np.ascontiguousarray(xy1, np.float64), cam2, np.ascontiguousarray(xy2, np.float64), matches, opts
+        )
+        return tvg, np.asarray(tvg.inlier_matches, dtype=np.int64).reshape(-1, 2), int(tvg.config)
+
+    def too_little_overlap(found: int) -> InputError:
+        return InputError(
+            f"too little overlap between the images: {found} geometric inliers found among {len(xy1)} SIFT "
+            f"matches, at least {min_inliers} are needed (do both photos show the same scene, from nearby "
+            "viewpoints?)"
+        )
+
     C = pycolmap.TwoViewGeometryConfiguration
-    config = int(tvg.config)  # a plain int in pycolmap 4.x
+    bad = (int(C.UNDEFINED), int(C.DEGENERATE))
+    if len(xy1) < min_inliers:
+        # Count the inliers anyway (5 is the least an essential matrix needs), for the message.
+        found = len(ransac(5)[1]) if len(xy1) >= 5 else 0
+        raise too_little_overlap(min(found, len(xy1)))
+    tvg, inliers, config = ransac(min_inliers)
     names = {int(v): k for k, v in C.__members__.items()}
     logger.info("two-view geometry: %s with %d inliers of %d", names.get(config, config), len(inliers), len(xy1))
-    if len(inliers) < min_inliers or config in (int(C.UNDEFINED), int(C.DEGENERATE)):
-        raise InputError(
-            f"too little overlap between the images: {len(inliers)} geometric inliers found "
-            f"among {len(xy1)} SIFT matches, at least {min_inliers} are needed"
-        )
+    if len(inliers) < min_inliers or config in bad:
+        found = len(inliers)
+        if found == 0:
+            _, inl, cfg5 = ransac(5)
+            found = len(inl) if cfg5 not in bad else 0
+        raise too_little_overlap(found)
     if config in (int(C.PANORAMIC), int(C.PLANAR_OR_PANORAMIC)) and _median_parallax_px(xy1[inliers[:, 0]], xy2[inliers[:, 1]]) < 1.0:
-        raise InputError("no baseline between the images (the same photo twice?): depth cannot be recovered")
+        raise InputError(
+            "no baseline between the images: they are the same photo, or the camera did not move, "
+            "so no depth can be recovered (take the second photo from a different position)"
+        )
+    planar = (int(C.PANORAMIC), int(C.PLANAR_OR_PANORAMIC), int(C.PLANAR))
+    if not focal_known and config in planar:
+        turn = rotation_homography(xy1[inliers[:, 0]], xy2[inliers[:, 1]], max_error)
+        if turn is not None:
+            raise InputError(
+                f"no baseline between the images: one homography maps every match, as a pure rotation of the camera "
+                f"(by about {turn:.1f} deg) does, so no depth can be recovered; if the camera did move and the scene "
+                "is one flat surface, give the true camera with --camera"
+            )
     pose = tvg.cam2_from_cam1
     if pose is None:
         raise InputError("could not recover a relative pose from the matches (degenerate geometry)")
@@ -163,10 +201,41 @@ def estimate_two_view(
     angle = np.degrees(np.median(triangulation_angles(tv)))
     if not np.isfinite(angle) or angle < min_tri_angle_deg:
         raise InputError(
-            f"no baseline between the images (median triangulation angle {angle:.2f} deg, "
-            f"need {min_tri_angle_deg} deg): a pure rotation or the same photo twice gives no depth"
+            f"no baseline between the images: median triangulation angle {angle:.2f} deg, at least "
+            f"{min_tri_angle_deg:g} deg is needed; the camera only turned (a pure rotation) or did not move, so no "
+            "depth can be recovered (take the second photo from a different position)"
         )
     return tv
+
+
+#: A homography whose eigenvalues differ in magnitude by less than this share is
+#: taken for a pure rotation (a rotation's homography ``K R K^-1`` is similar to
+#: ``R``: eigenvalues 1, e^{+-i theta}, whatever ``K``).
+ROTATION_EIG_TOL = 0.002
+
+
+def rotation_homography(xy1: np.ndarray, xy2: np.ndarray, max_error: float = 2.0) -> float | None:
+    """Rotation angle (deg) when the matches fit a homography similar to a rotation, else None.
+
+    The test needs no intrinsics: ``H = K2 R K1^-1`` with ``K1 = K2`` has the
+    eigenvalues of ``R`` up to scale. A flat scene seen after a translation gives
+    ``K (R + t n^T / d) K^-1`` instead, whose eigenvalue magnitudes differ (but
+    not always: the test is only used when the focal length is a guess).
+    """
+    if len(xy1) < 8:
+        return None
+    H, mask = cv2.findHomography(xy1.astype(np.float64), xy2.astype(np.float64), cv2.RANSAC, float(max_error))
+    if H is None or mask is None or mask.mean() < 0.9:
+        return None
+    det = np.linalg.det(H)
+    if not np.isfinite(det) or abs(det) < 1e-12:
+        return None
+    lam = np.linalg.eigvals(H / np.cbrt(det))
+    mag = np.abs(lam)
+    theta = float(np.degrees(np.max(np.abs(np.angle(lam)))))
+    if mag.max() / mag.min() - 1.0 < ROTATION_EIG_TOL and theta > 0.5:
+        return theta
+    return None
 
 
 def _median_parallax_px(a: np.ndarray, b: np.ndarray) -> float:

@@ -54,6 +54,7 @@ def parse_camera(text: str, camera_id: int = 1) -> pycolmap.Camera:
             f"({camera.params_info}), got {len(params)}"
         )
     camera.params = np.asarray(params, dtype=np.float64)
+    camera.has_prior_focal_length = True  # given by the user: trusted
     if not camera.verify_params() or camera.has_bogus_params(0.01, 100.0, 10.0):
         raise InputError(f"bad camera {text!r}: implausible parameters ({camera.params_info})")
     return camera
@@ -68,7 +69,9 @@ def camera_to_string(camera: pycolmap.Camera) -> str:
 def default_camera(width: int, height: int, camera_id: int = 1) -> pycolmap.Camera:
     """COLMAP's default: SIMPLE_RADIAL, f = 1.2 * max(W, H), centred principal point."""
     f = DEFAULT_FOCAL_FACTOR * max(width, height)
-    return pycolmap.Camera.create_from_model_name(camera_id, "SIMPLE_RADIAL", f, width, height)
+    camera = pycolmap.Camera.create_from_model_name(camera_id, "SIMPLE_RADIAL", f, width, height)
+    camera.has_prior_focal_length = False  # a guess
+    return camera
 
 
 def infer_camera(path: str | Path, width: int, height: int, camera_id: int = 1) -> tuple[pycolmap.Camera, str]:
@@ -89,6 +92,7 @@ def infer_camera(path: str | Path, width: int, height: int, camera_id: int = 1) 
     f = float(camera.mean_focal_length())
     scale = max(width, height) / max(camera.width, camera.height)
     out = pycolmap.Camera.create_from_model_name(camera_id, "SIMPLE_RADIAL", f * scale, width, height)
+    out.has_prior_focal_length = True
     return out, "exif"
 
 

@@ -1,44 +1,170 @@
 """Output folders that never hold half a result.
 
-Everything is written into a hidden staging folder beside OUT and moved into
-OUT only when the whole run succeeded; a failure or Ctrl-C removes the staging
-folder and leaves OUT as it was.
+Everything is written into a hidden staging folder beside OUT,
+``.OUT.partial-<host>-<pid>-<random>``, and becomes OUT in one step only when
+the whole run succeeded:
+
+* OUT missing or empty: the staging folder is renamed to OUT (one ``rename``).
+* OUT holding earlier results (``--overwrite``): files in OUT that are not
+  results are hard-linked into the staging folder, which is then swapped with
+  OUT in one ``renameat2(RENAME_EXCHANGE)`` (Linux); the old results are
+  deleted afterwards. Without that call, OUT is renamed aside and the staging
+  folder renamed in its place (OUT is briefly missing, never mixed).
+* Where no folder rename is possible (OUT is a mount point, or the current
+  folder), the results are moved in one by one, ``report.json`` last, after
+  the old results were moved out.
+
+So a reader sees either nothing (or the old results) or the complete new set,
+also when the process is killed (SIGKILL) at any moment. A failure or Ctrl-C
+removes the staging folder; one left by a killed run is removed by the next run
+that writes beside it, once its process is gone.
 """
 
 from __future__ import annotations
 
+import ctypes
+import errno
+import glob
+import hashlib
 import logging
 import os
 import secrets
 import shutil
+import socket
+import sys
 from pathlib import Path
+from typing import Iterable
 
 from ..errors import InputError
 
 logger = logging.getLogger(__name__)
 
+#: What ``sefm-recon pair`` writes into OUT; with ``--overwrite`` these are
+#: replaced (or removed when the new run does not write them, e.g. mesh.ply),
+#: everything else in OUT is kept.
+PAIR_RESULTS = ("matches.npz", "points.ply", "mesh.ply", "sparse", "matches.png", "report.json")
+
+
+def _host_tag() -> str:
+    return hashlib.sha1(socket.gethostname().encode()).hexdigest()[:6]
+
+
+def _stage_prefix(out: Path) -> str:
+    return f".{out.name}.partial-"
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except (PermissionError, OSError):
+        return True
+    return True
+
+
+def clean_stale_stages(out: str | Path) -> list[Path]:
+    """Remove staging folders of OUT left by killed runs on this host; returns them.
+
+    Only folders named by this module, on this host, whose process is gone are
+    touched (a folder of a live run, or of another host, is left alone).
+    """
+    out = Path(out).resolve()
+    parent = out.parent
+    removed = []
+    if not parent.is_dir():
+        return removed
+    host = _host_tag()
+    for p in parent.glob(glob.escape(_stage_prefix(out)) + "*"):
+        parts = p.name[len(_stage_prefix(out)):].split("-")
+        if len(parts) != 3 or parts[0] != host or not parts[1].isdigit():
+            continue
+        pid = int(parts[1])
+        if pid == os.getpid() or _pid_alive(pid):
+            continue
+        shutil.rmtree(p, ignore_errors=True)
+        if not p.exists():
+            removed.append(p)
+            logger.info("removed %s, left by an interrupted run", p.name)
+    return removed
+
 
 def check_output_dir(out: str | Path, overwrite: bool) -> Path:
-    """Refuse an existing, non-empty OUT unless ``overwrite`` (nothing is touched)."""
+    """Refuse an unusable OUT, or an existing non-empty one unless ``overwrite`` (nothing in OUT is touched).
+
+    Staging folders beside OUT left by killed runs are removed first (see :func:`clean_stale_stages`).
+    """
     out = Path(out)
+    try:
+        clean_stale_stages(out)
+    except OSError as err:  # never a reason to fail
+        logger.debug("could not clean old staging folders of %s: %s", out, err)
     if out.exists() and not out.is_dir():
         raise InputError(f"output path exists and is not a folder: {out}")
     if out.is_dir() and any(out.iterdir()) and not overwrite:
         raise InputError(f"output folder is not empty: {out} (use --overwrite to replace its results)")
+    # The staging folder is created beside OUT: its first existing ancestor must be a writable folder.
+    anc = out.resolve().parent
+    while not anc.exists() and anc != anc.parent:
+        anc = anc.parent
+    if not anc.is_dir():
+        raise InputError(f"cannot create output folder {out}: {anc} is not a folder")
+    if not os.access(anc, os.W_OK | os.X_OK):
+        raise InputError(f"cannot write output folder {out}: no write permission in {anc}")
     return out
 
 
-class StagedOutput:
-    """Context manager: ``with StagedOutput(out, overwrite) as stage: write into stage``."""
+_RENAME_EXCHANGE = 2
+_AT_FDCWD = -100
 
-    def __init__(self, out: str | Path, overwrite: bool = False):
+
+def _exchange(a: Path, b: Path) -> bool:
+    """Atomically swap two paths (Linux ``renameat2``); False where unsupported."""
+    if not sys.platform.startswith("linux"):
+        return False
+    try:
+        fn = ctypes.CDLL(None, use_errno=True).renameat2
+    except (OSError, AttributeError):
+        return False
+    fn.argtypes = [ctypes.c_int, ctypes.c_char_p, ctypes.c_int, ctypes.c_char_p, ctypes.c_uint]
+    fn.restype = ctypes.c_int
+    if fn(_AT_FDCWD, os.fsencode(a), _AT_FDCWD, os.fsencode(b), _RENAME_EXCHANGE) == 0:
+        return True
+    err = ctypes.get_errno()
+    if err in (errno.EINVAL, errno.ENOSYS, errno.EOPNOTSUPP, errno.ENOTSUP):
+        return False
+    raise OSError(err, os.strerror(err), str(b))
+
+
+def _link_tree(src: Path, dst: Path) -> None:
+    """Hard-link ``src`` (file, symlink or folder) to ``dst``: no data is copied."""
+    if src.is_symlink():
+        os.symlink(os.readlink(src), dst)
+    elif src.is_dir():
+        shutil.copytree(src, dst, symlinks=True, copy_function=os.link)
+    else:
+        os.link(src, dst)
+
+
+class StagedOutput:
+    """Context manager: ``with StagedOutput(out, overwrite) as stage: write into stage``.
+
+    ``results``: the names a run writes into OUT. With ``overwrite``, entries of
+    OUT with these names are replaced or removed; other entries are kept. By
+    default only the names the run actually wrote are replaced.
+    """
+
+    def __init__(self, out: str | Path, overwrite: bool = False, results: Iterable[str] | None = None):
         self.out = check_output_dir(out, overwrite)
+        self.overwrite = overwrite
+        self.results = set(results) if results is not None else None
         self.stage: Path | None = None
 
     def __enter__(self) -> Path:
-        parent = self.out.resolve().parent
-        parent.mkdir(parents=True, exist_ok=True)
-        self.stage = parent / f".{self.out.name}.partial-{secrets.token_hex(4)}"
+        real = self.out.resolve()
+        real.parent.mkdir(parents=True, exist_ok=True)
+        clean_stale_stages(real)
+        self.stage = real.parent / f"{_stage_prefix(real)}{_host_tag()}-{os.getpid()}-{secrets.token_hex(4)}"
         self.stage.mkdir()
         return self.stage
 
@@ -51,16 +177,70 @@ class StagedOutput:
             shutil.rmtree(self.stage, ignore_errors=True)
         return False
 
+    # ------------------------------------------------------------------ commit
+
     def _commit(self) -> None:
-        self.out.mkdir(parents=True, exist_ok=True)
-        for item in sorted(self.stage.iterdir()):
-            target = self.out / item.name
-            if target.is_dir() and not target.is_symlink():
-                # Swap folders: move the old aside first so a reader never sees a mix.
-                old = self.out / f".{item.name}.old-{secrets.token_hex(4)}"
-                os.replace(target, old)
-                os.replace(item, target)
-                shutil.rmtree(old, ignore_errors=True)
-            else:
-                os.replace(item, target)
-        logger.debug("moved results into %s", self.out)
+        real = self.out.resolve()
+        old = [p for p in real.iterdir()] if real.is_dir() else []
+        if old and not self.overwrite:
+            raise InputError(f"output folder is not empty: {self.out} (it was filled during the run; "
+                             "use --overwrite to replace its results)")
+        cwd = Path.cwd().resolve()
+        if real == cwd or real in cwd.parents or (real.exists() and os.path.ismount(real)):
+            self._commit_per_item(real)  # never rename the shell's current folder or a mount point
+            return
+        if not old:
+            try:
+                os.rename(self.stage, real)  # atomic; replaces an empty folder
+                logger.debug("results are in %s", real)
+                return
+            except OSError as err:
+                logger.debug("renaming %s to %s failed (%s): moving files one by one", self.stage, real, err)
+                self._commit_per_item(real)
+                return
+        ours = self.results if self.results is not None else {p.name for p in self.stage.iterdir()}
+        new_names = {p.name for p in self.stage.iterdir()}
+        try:
+            for p in old:
+                if p.name not in ours and p.name not in new_names:
+                    _link_tree(p, self.stage / p.name)  # keep the user's other files
+            try:
+                shutil.copystat(real, self.stage, follow_symlinks=True)
+            except OSError:
+                pass
+        except OSError as err:
+            logger.debug("cannot hard-link the other files of %s (%s): moving files one by one", real, err)
+            for p in self.stage.iterdir():
+                if p.name not in new_names:
+                    shutil.rmtree(p) if p.is_dir() and not p.is_symlink() else p.unlink()
+            self._commit_per_item(real)
+            return
+        if _exchange(self.stage, real):
+            logger.debug("swapped the new results into %s", real)
+            return  # the stage now holds the old results; __exit__ removes it
+        aside = real.parent / f"{_stage_prefix(real)}{_host_tag()}-{os.getpid()}-{secrets.token_hex(4)}"
+        os.rename(real, aside)
+        try:
+            os.rename(self.stage, real)
+        except OSError:
+            os.rename(aside, real)
+            raise
+        shutil.rmtree(aside, ignore_errors=True)
+
+    def _commit_per_item(self, real: Path) -> None:
+        """Move old results out, then the new ones in, ``report.json`` last."""
+        real.mkdir(parents=True, exist_ok=True)
+        new = sorted(self.stage.iterdir(), key=lambda p: (p.name == "report.json", p.name))
+        ours = (self.results or set()) | {p.name for p in new}
+        trash = real.parent / f"{_stage_prefix(real)}{_host_tag()}-{os.getpid()}-{secrets.token_hex(4)}"
+        trash.mkdir()
+        try:
+            for name in sorted(ours, key=lambda n: n != "report.json"):  # the old report goes first
+                target = real / name
+                if target.exists() or target.is_symlink():
+                    os.replace(target, trash / name)
+            for item in new:
+                os.replace(item, real / item.name)
+        finally:
+            shutil.rmtree(trash, ignore_errors=True)
+        logger.debug("moved results into %s", real)
