@@ -33,6 +33,7 @@ __all__ = [
     "true_correspondences",
     "covisibility_mask",
     "evaluate_matches",
+    "surface_distances",
 ]
 
 DISCONTINUITY_REL = 0.01  # relative depth spread of a 2x2 neighbourhood that counts as an edge
@@ -174,3 +175,39 @@ def evaluate_matches(uv1, uv2, view1, view2, thresholds=(1.0, 3.0), covisible=No
         covg[f"coverage@{key}"] = float((held & cov_mask).sum() / n_cov) if n_cov else 0.0
     out = {"matches": n, **prec, **covg, "covisible_pixels": n_cov}
     return out
+
+
+def surface_distances(xyz, views) -> np.ndarray:
+    """Upper bound of each world point's distance to the true surface, (N,).
+
+    For every view the point projects into (in front of the camera, inside the
+    image, finite depth there), the surface point on the same viewing ray is the
+    one at the view's depth ``d`` (:func:`sample_depth`); the point lies
+    ``|z - d| * |K^-1 (u, v, 1)|`` from it. The smallest such distance over the
+    views bounds the distance to the surface from above. ``inf`` where no view
+    has a depth for the point. ``views`` need ``K, R, t, depth`` (world -> camera,
+    COLMAP conventions).
+    """
+    X = np.asarray(xyz, np.float64).reshape(-1, 3)
+    best = np.full(len(X), np.inf)
+    for v in views:
+        K = np.asarray(v.K, np.float64)
+        R = np.asarray(v.R, np.float64)
+        t = np.asarray(v.t, np.float64).reshape(3)
+        H, W = v.depth.shape
+        Xc = X @ R.T + t
+        z = Xc[:, 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            p = Xc @ K.T
+            uv = p[:, :2] / p[:, 2:3]
+            ok = (z > 0) & np.isfinite(uv).all(1) & (uv[:, 0] >= 0) & (uv[:, 0] < W) & (uv[:, 1] >= 0) & (uv[:, 1] < H)
+        idx = np.flatnonzero(ok)
+        if idx.size == 0:
+            continue
+        d = sample_depth(v.depth, uv[idx])
+        ray = np.column_stack([uv[idx], np.ones(idx.size)]) @ np.linalg.inv(K).T
+        with np.errstate(invalid="ignore"):
+            e = np.abs(z[idx] - d) * np.linalg.norm(ray, axis=1)
+        e = np.where(np.isfinite(e), e, np.inf)
+        best[idx] = np.minimum(best[idx], e)
+    return best
