@@ -16,6 +16,25 @@ from .errors import InputError
 logger = logging.getLogger("sefm_recon")
 
 
+class _Parser(argparse.ArgumentParser):
+    """Usage errors as one line on stderr (exit 2), like every other input error."""
+
+    def error(self, message: str):
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
+def _max_size(text: str) -> int:
+    from .config import MIN_MAX_SIZE
+
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number of pixels, got {text!r}") from None
+    if value != 0 and value < MIN_MAX_SIZE:
+        raise argparse.ArgumentTypeError(f"expected 0 (never downscale) or at least {MIN_MAX_SIZE} px, got {value}")
+    return value
+
+
 def _common(p: argparse.ArgumentParser) -> None:
     p.add_argument("-o", "--output", required=True, metavar="OUT", help="output folder")
     p.add_argument("--config", metavar="FILE", help="TOML config (presets in configs/)")
@@ -27,7 +46,7 @@ def _common(p: argparse.ArgumentParser) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="sefm-recon",
         description="Dense two-view 3D reconstruction with SeFM, a sequential epipolar-line matcher.",
     )
@@ -43,7 +62,40 @@ def build_parser() -> argparse.ArgumentParser:
                       help="COLMAP camera of both images (or image 1), e.g. 'PINHOLE 1000 750 850 850 500 375'; "
                            "default: from EXIF, else SIMPLE_RADIAL with f = 1.2 * max(W, H)")
     pair.add_argument("--camera2", metavar="'MODEL W H PARAMS...'", help="camera of image 2 when it differs")
+    pair.add_argument("--max-size", type=_max_size, metavar="PX",
+                      help="work on copies downscaled to this longest side (0 = full size); results are in the "
+                           "original pixels. Default 3200 (output.max_size): a 24-megapixel pair stays under 4 GB")
     _common(pair)
+
+    colmap = sub.add_parser("colmap", help="dense reconstruction of a COLMAP workspace (images/ and sparse/)",
+                            description="Dense SeFM matches for a COLMAP workspace with known poses: writes "
+                                        "pairs/, fused.ply, database.db, sparse/ and report.json into OUT.")
+    colmap.add_argument("workspace", metavar="WORKSPACE", help="COLMAP workspace: images/ and sparse/ or sparse/0")
+    colmap.add_argument("--pairs", metavar="FILE", help="pairs to match, one 'name1 name2' a line (names as in the "
+                                                         "model); default: pairs that share sparse points, or every "
+                                                         "pair when the model has none")
+    colmap.add_argument("--image-dir", metavar="DIR", help="image folder (default: WORKSPACE/images)")
+    colmap.add_argument("--sparse-dir", metavar="DIR", help="model folder (default: WORKSPACE/sparse or sparse/0)")
+    colmap.add_argument("--workers", type=int, metavar="N", help="pairs matched in parallel (default: all cores)")
+    colmap.add_argument("--scheduler", metavar="ADDRESS",
+                        help="run the pairs on a Dask distributed cluster, e.g. tcp://host:8786 "
+                             "(needs pip install 'sefm-recon[dask]')")
+    _common(colmap)
+
+    ev = sub.add_parser("eval", help="precision/coverage tables on generated scenes: SeFM, SIFT, StereoSGBM",
+                        description="Render generated scenes with ground truth, match them with SeFM, SIFT and "
+                                    "StereoSGBM (true rectification), and print the paper's Table 1 as Markdown; "
+                                    "--ablation adds a table with each SeFM stage switched off in turn.")
+    ev.add_argument("--seeds", type=int, nargs="+", default=[400, 401, 402], metavar="SEED")
+    ev.add_argument("--size", default="1000x750", metavar="WxH")
+    ev.add_argument("--pose", choices=["true", "estimated"], default="true",
+                    help="use the true relative pose, or estimate it from SIFT as 'pair' does")
+    ev.add_argument("--noise", type=float, default=0.0, help="sensor noise sigma, 8-bit levels")
+    ev.add_argument("--ablation", action="store_true", help="also the ablation table (slower)")
+    ev.add_argument("--json", metavar="FILE", help="write the rows as JSON")
+    ev.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE")
+    ev.add_argument("-q", "--quiet", action="store_true")
+    ev.add_argument("-v", "--verbose", action="store_true")
     return parser
 
 
@@ -62,6 +114,8 @@ def _cmd_pair(args) -> int:
     from .pipeline import run_pair
 
     cfg = load_config(args.config, args.overrides)
+    if args.max_size is not None:
+        cfg.output.max_size = args.max_size
     report = run_pair(args.image1, args.image2, args.output, cfg, camera=args.camera, camera2=args.camera2,
                       overwrite=args.overwrite, progress=not args.quiet and cfg.output.progress)
     c = report["counts"]
@@ -71,6 +125,64 @@ def _cmd_pair(args) -> int:
     return 0
 
 
+def _cmd_colmap(args) -> int:
+    from .colmap_plugin import run_colmap
+    from .config import load_config
+
+    cfg = load_config(args.config, args.overrides)
+    report = run_colmap(args.workspace, args.output, cfg, pairs_file=args.pairs, image_dir=args.image_dir,
+                        sparse_dir=args.sparse_dir, overwrite=args.overwrite, workers=args.workers,
+                        scheduler=args.scheduler, progress=not args.quiet and cfg.output.progress)
+    c, s = report["counts"], report["sparse"]
+    if not args.quiet:
+        skipped = f" ({c['pairs_skipped']} skipped)" if c["pairs_skipped"] else ""
+        print(f"{c['pairs_done']} of {c['pairs']} pairs{skipped}: {c.get('valid_matches', 0)} matches, "
+              f"fused.ply {c['fused_points']} points, sparse/ {s['points']} points "
+              f"(mean reprojection error {s['mean_reprojection_error_px']:.2f} px) "
+              f"in {report['timings_s']['total']:.1f} s -> {args.output}")
+    return 0
+
+
+def _cmd_eval(args) -> int:
+    import json
+
+    from .config import load_config
+    from .eval_tables import ablation_table, format_ablation_table, format_scene_table, scene_table
+
+    load_config(None, args.overrides)  # bad keys fail before any rendering
+    try:
+        w, h = (int(v) for v in args.size.lower().split("x"))
+    except ValueError:
+        raise InputError(f"bad --size {args.size!r}: expected WIDTHxHEIGHT, e.g. 1000x750") from None
+    rows = scene_table(args.seeds, (w, h), args.pose, args.noise, args.overrides)
+    print(f"Scenes {w}x{h}, {args.pose} pose:\n")
+    print(format_scene_table(rows))
+    out = {"size": [w, h], "pose": args.pose, "scenes": rows}
+    if args.ablation:
+        abl = ablation_table(args.seeds, (w, h), args.pose, args.noise, args.overrides)
+        print(f"\nAblation (mean over seeds {', '.join(map(str, args.seeds))}):\n")
+        print(format_ablation_table(abl))
+        out["ablation"] = abl
+    if args.json:
+        with open(args.json, "w") as f:
+            json.dump(out, f, indent=1)
+    return 0
+
+
+def _terminate_as_interrupt() -> None:
+    """SIGTERM (``kill``, a batch system's time limit) cleans up like Ctrl-C: no partial output."""
+    import signal
+    import threading
+
+    import pycolmap  # noqa: F401 - its glog installs a SIGTERM stack dumper on import: ours must come after
+
+    def handler(signum, frame):
+        raise KeyboardInterrupt
+
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGTERM, handler)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -78,8 +190,9 @@ def main(argv: list[str] | None = None) -> int:
         parser.print_help()
         return 2
     _setup_logging(args.quiet, args.verbose)
+    _terminate_as_interrupt()
     try:
-        return {"pair": _cmd_pair}[args.command](args)
+        return {"pair": _cmd_pair, "colmap": _cmd_colmap, "eval": _cmd_eval}[args.command](args)
     except InputError as err:
         print(f"sefm-recon: error: {err}", file=sys.stderr)
         return 2

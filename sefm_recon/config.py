@@ -37,11 +37,13 @@ class LinesConfig:
     blur_sigma: float = 0.7  #: Gaussian pre-filter (px) against aliasing along the lines
     max_lines: int = 20000
     color: bool = False  #: match on the three colour channels instead of grey
+    neighbours: int = 2  #: aligned neighbour lines on each side stacked as channels (0 = the paper's 1-D)
+    neighbour_step: float = 1.0  #: spacing of the neighbour lines, in line steps
 
 
 @dataclass
 class RoughConfig:
-    jump_threshold: float = 4.0  #: da_i above this (0-255 intensity) makes a key point
+    jump_threshold: float = 2.0  #: da_i above this (0-255 intensity) makes a key point
     descriptor_radius: int = 8  #: half width of the FFT window, samples
     descriptor_coefficients: int = 6  #: Fourier coefficients kept (beyond DC)
     max_descriptor_distance: float = 0.8  #: pairs farther apart never match
@@ -51,18 +53,31 @@ class RoughConfig:
 @dataclass
 class DenseConfig:
     occlusion_penalty: float = 10.0  #: DP cost of a sample without partner
-    band_fraction: float = 0.3  #: DP band half width, as a share of the segment length
+    band_fraction: float = 0.5  #: DP band half width, as a share of the segment length
     band_min: int = 4
     band_max: int = 64
     occlusion_run: int = 2  #: samples sharing one partner beyond this are occluded
+    open_ends: bool = True  #: also match beyond the first and last rough match of a line
+    both_directions: bool = True  #: match 2->1 as well and keep the consistent matches
+    consistency_px: float = 1.0  #: largest round-trip difference, samples
+    subpixel: bool = True  #: refine partners by a parabola through the window correlation
+    subpixel_half_window: int = 7  #: its ZNCC window half length, samples (all neighbour-line channels)
+    subpixel_iterations: int = 1
+    fill_max_gap: int = 64  #: fill gaps up to this many samples between matches on a line (0 = off)
+    fill_radius: int = 3  #: search this many samples around the interpolated partner
+    fill_half_window: int = 3  #: ZNCC window half length (all neighbour-line channels)
+    fill_min_zncc: float = 0.9  #: correlation a filled match needs
 
 
 @dataclass
 class ValidityConfig:
-    sv_max_unmatched: int = 0  #: S_v: unmatched strong key points allowed inside a segment
+    sv_max_unmatched: int = 2  #: S_v: unmatched strong key points allowed inside a segment
     sv_strength: float = 2.0  #: ...where "strong" is a jump of this many thresholds
     sp_depth_jump: float = 0.03  #: S_p: relative depth change that breaks continuity
     sp_min_run: int = 4  #: S_p: shorter continuous runs are dropped
+    neighbour_tol_px: float = 1.0  #: 2-D check: largest disparity difference from the neighbours' median, px (0 = off)
+    neighbour_radius: int = 2  #: 2-D check window half size, px
+    neighbour_support: int = 6  #: neighbours needed to judge a match
     max_cost: float = 40.0  #: dense matches with a higher DP cost are dropped
     min_tri_angle_deg: float = 0.5  #: points seen under a smaller angle are dropped
 
@@ -80,6 +95,20 @@ class OutputConfig:
 
 
 @dataclass
+class ColmapConfig:
+    """``sefm-recon colmap``: pair selection, fusion and the COLMAP database."""
+
+    min_covisible: int = 30  #: sparse points two images must share to be paired (model with points)
+    pairs_per_image: int = 4  #: keep each image's best partners by shared points (0 = all)
+    cell_size: float = 2.0  #: px; keypoint quantisation cell (at most one keypoint per cell), as hloc
+    max_error: float = 0.75  #: px; a match endpoint farther from its keypoint is dropped
+    max_epipolar_error: float = 4.0  #: px; two-view geometry inliers
+    tri_min_angle_deg: float = 1.5  #: COLMAP triangulator: smallest triangulation angle
+    fuse_voxel_px: float = 1.0  #: fusion voxel, in pixels of footprint at the median depth
+    fuse_std_ratio: float = 2.5  #: statistical outlier removal of the fused cloud
+
+
+@dataclass
 class Config:
     sift: SiftConfig = field(default_factory=SiftConfig)
     geometry: GeometryConfig = field(default_factory=GeometryConfig)
@@ -88,6 +117,7 @@ class Config:
     dense: DenseConfig = field(default_factory=DenseConfig)
     validity: ValidityConfig = field(default_factory=ValidityConfig)
     output: OutputConfig = field(default_factory=OutputConfig)
+    colmap: ColmapConfig = field(default_factory=ColmapConfig)
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
@@ -132,6 +162,82 @@ def _apply(cfg: Config, section: str, key: str, value: Any) -> None:
     setattr(sub, key, _coerce(value, kind, f"{section}.{key}"))
 
 
+#: Allowed ranges ``(low, high, low_open)`` of numeric keys; ``None`` = unbounded,
+#: ``low_open`` = the low end itself is not allowed. Every float must be finite.
+_LIMITS: dict[str, tuple[float | None, float | None, bool]] = {
+    "sift.max_features": (1, None, False),
+    "sift.max_ratio": (0, 1, True),
+    "geometry.min_inliers": (5, None, False),
+    "geometry.ransac_max_error": (0, None, True),
+    "geometry.min_tri_angle_deg": (0, 90, False),
+    "geometry.depth_margin": (1, None, False),
+    "lines.line_spacing": (0.1, None, False),
+    "lines.sample_spacing": (0.1, None, False),
+    "lines.blur_sigma": (0, 20, False),
+    "lines.max_lines": (1, None, False),
+    "lines.neighbours": (0, 8, False),
+    "lines.neighbour_step": (0, None, True),
+    "rough.jump_threshold": (0, None, False),
+    "rough.descriptor_radius": (1, 64, False),
+    "rough.descriptor_coefficients": (1, 64, False),
+    "rough.max_descriptor_distance": (0, None, True),
+    "rough.band_slack": (0, None, False),
+    "dense.occlusion_penalty": (0, None, False),
+    "dense.band_fraction": (0, None, False),
+    "dense.band_min": (0, None, False),
+    "dense.band_max": (0, None, False),
+    "dense.occlusion_run": (1, None, False),
+    "validity.sv_max_unmatched": (0, None, False),
+    "validity.sv_strength": (0, None, False),
+    "validity.sp_depth_jump": (0, None, True),
+    "validity.sp_min_run": (1, None, False),
+    "validity.max_cost": (0, None, False),
+    "validity.min_tri_angle_deg": (0, 90, False),
+    "output.max_size": (0, None, False),
+    "output.poisson_depth": (1, 12, False),
+    "output.density_quantile": (0, 1, False),
+    "output.mesh_max_points": (1, None, False),
+    "output.sparse_max_points": (0, None, False),
+    "colmap.min_covisible": (1, None, False),
+    "colmap.pairs_per_image": (0, None, False),
+    "colmap.cell_size": (0, None, True),
+    "colmap.max_error": (0, None, True),
+    "colmap.max_epipolar_error": (0, None, True),
+    "colmap.tri_min_angle_deg": (0, 90, False),
+    "colmap.fuse_voxel_px": (0, None, True),
+    "colmap.fuse_std_ratio": (0, None, True),
+}
+
+#: ``output.max_size`` is 0 (never downscale) or at least this many pixels.
+MIN_MAX_SIZE = 256
+
+
+def validate(cfg: Config) -> Config:
+    """Check every value's range; raises :class:`InputError` naming the key."""
+    import math
+
+    for sec in dataclasses.fields(cfg):
+        sub = getattr(cfg, sec.name)
+        for f in dataclasses.fields(sub):
+            key = f"{sec.name}.{f.name}"
+            value = getattr(sub, f.name)
+            if isinstance(value, float) and not math.isfinite(value):
+                raise InputError(f"config key {key}: expected a finite number, got {value!r}")
+            if key not in _LIMITS or isinstance(value, bool) or not isinstance(value, (int, float)):
+                continue
+            low, high, low_open = _LIMITS[key]
+            too_low = low is not None and (value < low or (low_open and value == low))
+            if too_low or (high is not None and value > high):
+                lo_txt = "" if low is None else f"{'>' if low_open else '>='} {low:g}"
+                hi_txt = "" if high is None else f"<= {high:g}"
+                rng = " and ".join(t for t in (lo_txt, hi_txt) if t)
+                raise InputError(f"config key {key}: must be {rng}, got {value!r}")
+    if 0 < cfg.output.max_size < MIN_MAX_SIZE:
+        raise InputError(f"config key output.max_size: must be 0 (never downscale) or at least {MIN_MAX_SIZE} px, "
+                         f"got {cfg.output.max_size}")
+    return cfg
+
+
 def load_config(path: str | Path | None = None, overrides: list[str] | tuple[str, ...] = ()) -> Config:
     """Defaults, then a TOML file, then ``section.key=value`` overrides."""
     cfg = Config()
@@ -143,6 +249,8 @@ def load_config(path: str | Path | None = None, overrides: list[str] | tuple[str
             raise InputError(f"config file not found: {path}") from None
         except tomllib.TOMLDecodeError as err:
             raise InputError(f"config file {path} is not valid TOML: {err}") from None
+        except (OSError, UnicodeDecodeError) as err:
+            raise InputError(f"cannot read config file {path}: {getattr(err, 'strerror', None) or err}") from None
         for section, values in data.items():
             if not isinstance(values, dict):
                 raise InputError(f"config file {path}: {section!r} must be a [section]")
@@ -154,4 +262,4 @@ def load_config(path: str | Path | None = None, overrides: list[str] | tuple[str
         name, value = item.split("=", 1)
         section, key = name.strip().split(".", 1)
         _apply(cfg, section, key, value.strip())
-    return cfg
+    return validate(cfg)

@@ -22,7 +22,7 @@ from .errors import InputError
 from .geometry.two_view import TwoView, estimate_two_view, sift_correspondences, with_known_pose
 from .geometry.undistort import WorkingView, make_working_view
 from .io.cameras import camera_to_string, infer_camera, parse_camera
-from .io.images import read_image, to_gray
+from .io.images import check_texture, read_image, to_gray
 from .matching.sefm import DenseMatches, match_pair
 
 logger = logging.getLogger(__name__)
@@ -49,6 +49,8 @@ class PairResult:
     mesh: tuple | None = None  #: (vertices, triangles, colours, normals)
     view1: WorkingView | None = None
     view2: WorkingView | None = None
+    sift_uv1: np.ndarray | None = None  #: (M, 2) SIFT matches consistent with the geometry, image 1
+    sift_uv2: np.ndarray | None = None
 
 
 def resolve_cameras(path1, path2, img1, img2, camera: str | None, camera2: str | None):
@@ -84,6 +86,7 @@ def reconstruct_pair(
     cfg: Config,
     pose: tuple[np.ndarray, np.ndarray] | None = None,
     progress: bool = False,
+    names: tuple[str, str] = ("image 1", "image 2"),
 ) -> PairResult:
     """Run every stage on two decoded photos.
 
@@ -91,6 +94,10 @@ def reconstruct_pair(
         img1, img2: (H, W, 3) uint8 RGB, original resolution.
         camera1, camera2: their cameras (original resolution).
         pose: known ``(R, t)`` cam2_from_cam1; estimated from SIFT when None.
+        names: how messages call the two images.
+    Raises:
+        InputError: a textureless image, too little overlap, no baseline, or no
+            point that survives matching.
     """
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
@@ -99,13 +106,18 @@ def reconstruct_pair(
     timings["load"] = time.perf_counter() - t0
     if v1.scale < 1 or v2.scale < 1:
         logger.info("working at %dx%d and %dx%d", *v1.size, *v2.size)
+    check_texture(v1.image, names[0])  # fail early and say why, not "too little overlap"
+    check_texture(v2.image, names[1])
 
     t0 = time.perf_counter()
-    xy1, xy2 = sift_correspondences(to_gray(v1.image), to_gray(v2.image), cfg.sift.max_features, cfg.sift.max_ratio)
+    xy1, xy2 = sift_correspondences(to_gray(v1.image), to_gray(v2.image), cfg.sift.max_features, cfg.sift.max_ratio,
+                                    min_features=cfg.geometry.min_inliers if pose is None else 0,
+                                    names=names)
     if pose is None:
         g = cfg.geometry
         tv = estimate_two_view(xy1, xy2, v1.K, v2.K, v1.size, v2.size, g.min_inliers, g.ransac_max_error,
-                               g.min_tri_angle_deg)
+                               g.min_tri_angle_deg,
+                               focal_known=camera1.has_prior_focal_length and camera2.has_prior_focal_length)
     else:
         tv = with_known_pose(v1.K, v2.K, pose[0], pose[1], xy1, xy2, cfg.geometry.ransac_max_error)
     timings["two_view"] = time.perf_counter() - t0
@@ -122,6 +134,11 @@ def reconstruct_pair(
         keep = clean_points(dm.xyz)
     xyz, uv1w, uv2w, score, rgb = dm.xyz[keep], dm.uv1[keep], dm.uv2[keep], dm.score[keep], rgb[keep]
     centres = np.stack([np.zeros(3), -tv.R.T @ tv.t])
+    if len(xyz) == 0:
+        raise InputError(
+            f"no 3D point could be reconstructed: {dm.counts.get('dense_matches', 0)} dense matches, none valid "
+            "(too little texture along the epipolar lines, or too little overlap)"
+        )
     normals = estimate_normals(xyz, centres) if len(xyz) >= 3 else None
     timings["points"] = time.perf_counter() - t0
 
@@ -137,6 +154,7 @@ def reconstruct_pair(
         image_size=[[img1.shape[1], img1.shape[0]], [img2.shape[1], img2.shape[0]]],
         counts=counts, timings=timings, view1=v1, view2=v2,
         notes={"pose": tv.source},
+        sift_uv1=v1.to_original(tv.kp1), sift_uv2=v2.to_original(tv.kp2),
     )
     if cfg.output.mesh:
         t0 = time.perf_counter()
@@ -217,16 +235,22 @@ def run_pair(
     pose: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> dict:
     """``sefm-recon pair``: read, reconstruct, write into ``out`` atomically; returns the report."""
-    from .io.output import StagedOutput, check_output_dir
+    from .io.output import PAIR_RESULTS, StagedOutput, check_output_dir
 
     check_output_dir(out, overwrite)  # fail before the long work, not after
     t0 = time.perf_counter()
     img1 = read_image(image1)
     img2 = read_image(image2)
+    names = (f"image 1 ({Path(image1).name})", f"image 2 ({Path(image2).name})")
+    if pose is None and img1.shape == img2.shape and np.array_equal(img1, img2):
+        raise InputError(
+            f"{names[0]} and {names[1]} are the same photo: no baseline, so no depth can be recovered "
+            "(take the second photo from a different position)"
+        )
     cam1, cam2, sources = resolve_cameras(image1, image2, img1, img2, camera, camera2)
-    result = reconstruct_pair(img1, img2, cam1, cam2, cfg, pose=pose, progress=progress)
+    result = reconstruct_pair(img1, img2, cam1, cam2, cfg, pose=pose, progress=progress, names=names)
     result.notes["image1"], result.notes["image2"] = img1, img2
-    with StagedOutput(out, overwrite) as stage:
+    with StagedOutput(out, overwrite, results=PAIR_RESULTS) as stage:
         report = write_pair_outputs(result, cfg, stage, (Path(image1).name, Path(image2).name))
         report["camera_sources"] = sources
         report["timings_s"]["total"] = round(time.perf_counter() - t0, 4)

@@ -34,3 +34,7 @@ def test_config_file_errors(tmp_path):
         load_config(bad)
     with pytest.raises(InputError, match="not found"):
         load_config(tmp_path / "missing.toml")
+
+
+def test_default_preset_is_the_code_default():
+    assert load_config(ROOT / "configs" / "default.toml").to_dict() == Config().to_dict()

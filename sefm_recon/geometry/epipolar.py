@@ -40,6 +40,7 @@ class LinePairs:
     step2: np.ndarray
     count2: np.ndarray
     basis: np.ndarray  #: (3, 3) rows b, e_a, e_b in camera-1 axes
+    phi_step: float = 0.0  #: angle between neighbouring line pairs, radians
 
     @property
     def offset1(self) -> np.ndarray:
@@ -67,9 +68,11 @@ class LinePairs:
 
 
 def _expand(start, step, count) -> np.ndarray:
+    count = np.asarray(count, np.int64)
     line = np.repeat(np.arange(len(count)), count)
-    k = np.arange(int(count.sum())) - np.repeat(np.concatenate([[0], np.cumsum(count)[:-1]]), count)
-    return start[line] + k[:, None].astype(np.float64) * step[line]
+    k = np.arange(int(count.sum())) - np.repeat(np.cumsum(count) - count, count)  # index within its line
+    return np.asarray(start, np.float64).reshape(-1, 2)[line] + k[:, None].astype(np.float64) * np.asarray(
+        step, np.float64).reshape(-1, 2)[line]
 
 
 def baseline_basis(R: np.ndarray, t: np.ndarray) -> np.ndarray:
@@ -275,7 +278,7 @@ def line_pairs(
         "epipolar lines: %d pairs, %d + %d samples (epipoles %s, %s)",
         len(phi), c1.sum(), c2.sum(), _fmt_epipole(e1), _fmt_epipole(e2),
     )
-    return LinePairs(phi, s1, step1, c1, s2, step2, c2, basis)
+    return LinePairs(phi, s1, step1, c1, s2, step2, c2, basis, float(length / n))
 
 
 def _fmt_epipole(e: np.ndarray) -> str:
@@ -290,19 +293,56 @@ def sample_lines(image: np.ndarray, start: np.ndarray, step: np.ndarray, count: 
     Args:
         image: (H, W) or (H, W, C), any dtype; sampled as float32.
     """
-    pts = _expand(start, step, count).astype(np.float32) - 0.5  # COLMAP -> OpenCV centres
-    total = len(pts)
+    return sample_points(image, _expand(start, step, count))
+
+
+def rays_to_pixels(K: np.ndarray, Rc: np.ndarray, basis: np.ndarray, phi: np.ndarray, alpha: np.ndarray) -> np.ndarray:
+    """Pixels (N, 2) of the rays at half-plane angle ``phi`` and angle ``alpha`` from the baseline.
+
+    Inverse of :func:`ray_angles`; rays behind the camera give NaN.
+    """
+    m = np.cos(phi)[:, None] * basis[1] + np.sin(phi)[:, None] * basis[2]
+    d = np.cos(alpha)[:, None] * basis[0] + np.sin(alpha)[:, None] * m  # camera-1 axes
+    x = d @ Rc @ K.T  # rows: K Rc^T d, the ray in this camera's axes, projected
+    with np.errstate(divide="ignore", invalid="ignore"):
+        uv = x[:, :2] / x[:, 2:3]
+    uv[x[:, 2] <= 0] = np.nan
+    return uv
+
+
+def neighbour_positions(lp: LinePairs, K: np.ndarray, Rc: np.ndarray, which: int, alpha: np.ndarray,
+                        offset: float) -> np.ndarray:
+    """Sample positions on the line ``offset`` line steps beside each line, at the same ray angles.
+
+    Sample k of line l is the ray (phi_l, alpha_k); its neighbour is the ray
+    (phi_l + offset * phi_step, alpha_k). Neighbours are aligned across lines in
+    both images, so a surface point's partner moves little from one to the next:
+    stacking them gives the 1-D matcher a small 2-D window.
+    """
+    count = lp.count1 if which == 1 else lp.count2
+    phi = np.repeat(lp.phi + offset * lp.phi_step, count)
+    uv = rays_to_pixels(K, Rc, lp.basis, phi, alpha)
+    centre = lp.all_points1() if which == 1 else lp.all_points2()
+    bad = ~np.isfinite(uv).all(axis=1)
+    uv[bad] = centre[bad]
+    return uv
+
+
+def sample_points(image: np.ndarray, pts: np.ndarray) -> np.ndarray:
+    """Bilinear samples (N, C) float32 of ``image`` at COLMAP pixel positions ``pts`` (N, 2)."""
     img = image.astype(np.float32, copy=False)
     if img.ndim == 2:
         img = img[:, :, None]
+    total = len(pts)
     if total == 0:
         return np.zeros((0, img.shape[2]), np.float32)
+    p = pts.astype(np.float32) - 0.5  # COLMAP -> OpenCV centres
     # remap's maps must stay below SHRT_MAX per side: fold the flat list into rows.
     width = 4096
     rows = -(-total // width)
     pad = rows * width - total
-    mx = np.concatenate([pts[:, 0], np.zeros(pad, np.float32)]).reshape(rows, width)
-    my = np.concatenate([pts[:, 1], np.zeros(pad, np.float32)]).reshape(rows, width)
+    mx = np.concatenate([p[:, 0], np.zeros(pad, np.float32)]).reshape(rows, width)
+    my = np.concatenate([p[:, 1], np.zeros(pad, np.float32)]).reshape(rows, width)
     out = cv2.remap(img, mx, my, interpolation=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
     return out.reshape(rows * width, -1)[:total]
 

@@ -48,18 +48,25 @@ def detect_keypoints(a: np.ndarray, threshold: float, border: int) -> np.ndarray
 def fft_descriptors(a: np.ndarray, keypoints: np.ndarray, radius: int, ncoef: int) -> np.ndarray:
     """Fourier descriptors of the neighbourhood of each key point (paper §4.3).
 
-    The window ``a[i - radius : i + radius + 1]`` is Hann-tapered, normalised to
-    zero mean and unit energy (so a gain or offset between the photos does not
-    matter), and described by the real and imaginary parts of its DFT
-    coefficients 1..ncoef (the DC term is gone with the mean). The window is
-    centred on the key point, so the phase says on which side the edge rises.
+    The window ``a[i - radius : i + radius + 1]`` of every channel is
+    Hann-tapered, made zero-mean, and described by the real and imaginary parts
+    of its DFT coefficients 1..ncoef (the DC term is gone with the mean). The
+    descriptor is normalised to unit energy over all channels, so a gain or
+    offset between the photos does not matter. The window is centred on the key
+    point, so the phase says on which side the edge rises. With neighbouring
+    lines as channels, the descriptor sees a small 2-D patch.
 
-    Returns (len(keypoints), 2 * ncoef) float32.
+    Args:
+        a: (n, C) float32 samples.
+    Returns:
+        (len(keypoints), 2 * ncoef * C) float32.
     """
     n = a.shape[0]
+    C = a.shape[1]
     size = 2 * radius + 1
     m = keypoints.shape[0]
-    out = np.zeros((m, 2 * ncoef), np.float32)
+    D = 2 * ncoef
+    out = np.zeros((m, D * C), np.float32)
     win = np.empty(size, np.float64)
     taper = np.empty(size, np.float64)
     for s in range(size):
@@ -73,25 +80,28 @@ def fft_descriptors(a: np.ndarray, keypoints: np.ndarray, radius: int, ncoef: in
             sin_t[c, s] = np.sin(ang)
     for k in range(m):
         i0 = keypoints[k] - radius
-        mean = 0.0
-        for s in range(size):
-            idx = min(max(i0 + s, 0), n - 1)
-            win[s] = a[idx]
-            mean += win[s]
-        mean /= size
         energy = 0.0
-        for s in range(size):
-            win[s] = (win[s] - mean) * taper[s]
-            energy += win[s] * win[s]
-        scale = 1.0 / np.sqrt(energy + 1e-3)
-        for c in range(ncoef):
-            re = 0.0
-            im = 0.0
+        for ch in range(C):
+            mean = 0.0
             for s in range(size):
-                re += win[s] * cos_t[c, s]
-                im -= win[s] * sin_t[c, s]
-            out[k, 2 * c] = re * scale
-            out[k, 2 * c + 1] = im * scale
+                idx = min(max(i0 + s, 0), n - 1)
+                win[s] = a[idx, ch]
+                mean += win[s]
+            mean /= size
+            for s in range(size):
+                win[s] = (win[s] - mean) * taper[s]
+            for c in range(ncoef):
+                re = 0.0
+                im = 0.0
+                for s in range(size):
+                    re += win[s] * cos_t[c, s]
+                    im -= win[s] * sin_t[c, s]
+                out[k, ch * D + 2 * c] = re
+                out[k, ch * D + 2 * c + 1] = im
+                energy += re * re + im * im
+        scale = 1.0 / np.sqrt(energy + 1e-3)
+        for c in range(D * C):
+            out[k, c] *= scale
     return out
 
 
@@ -191,33 +201,37 @@ def _bt_bounds(x: np.ndarray):
 
 
 @njit(cache=True)
-def align_segment(x: np.ndarray, y: np.ndarray, penalty: float, band: int):
-    """Align two equal-length sequences sample by sample with DP (paper §4.4).
+def align_path(x: np.ndarray, y: np.ndarray, penalty: float, band: int, free_end: bool):
+    """Align two sequences sample by sample with DP (paper §4.4).
 
     Cost of matching ``x_u`` with ``y_v``: the sampling-insensitive
     ``max(0, y_v - I_max(x_u), I_min(x_u) - y_v)``, taken both ways (the smaller),
     summed over channels. Moves: diagonal (match), or advancing one sequence
     only at ``penalty`` (a sample without partner: occlusion or stretch). The
-    path runs from (0, 0) to (L-1, L-1) within ``|u - v| <= band``.
+    path starts at (0, 0) and stays within ``|u - v| <= band``. It ends at
+    (L1-1, L2-1), or with ``free_end`` at the cheapest cell of the last row or
+    column (samples of x beyond a last-column end cost ``penalty`` each and stay
+    unmatched): used at the open ends of a line, past the last rough match.
 
     Args:
-        x, y: (L, C) float32.
+        x, y: (L1, C), (L2, C) float32; L1 == L2 unless ``free_end``.
     Returns:
-        v_of_u (L,) float64: the mean partner position of each ``u`` on the path;
-        run (L,) int64: how many ``u`` share that partner (1 = one-to-one);
-        cost (L,) float32: matching cost at the path.
+        v_of_u (L1,) float64: mean partner position of each ``u`` (NaN: none);
+        run (L1,) int64: how many ``u`` share that partner (1 = one-to-one);
+        cost (L1,) float32: matching cost on the path.
     """
-    L, C = x.shape
+    L1, C = x.shape
+    L2 = y.shape[0]
     xlo, xhi = _bt_bounds(x)
     ylo, yhi = _bt_bounds(y)
     W = 2 * band + 1
     inf = np.float32(1e30)
-    D = np.full((L, W), inf, np.float32)
-    B = np.zeros((L, W), np.int8)
-    Cm = np.zeros((L, W), np.float32)
-    for u in range(L):
+    D = np.full((L1, W), inf, np.float32)
+    B = np.zeros((L1, W), np.int8)
+    Cm = np.zeros((L1, W), np.float32)
+    for u in range(L1):
         v0 = max(0, u - band)
-        v1 = min(L - 1, u + band)
+        v1 = min(L2 - 1, u + band)
         for v in range(v0, v1 + 1):
             c = 0.0
             for ch in range(C):
@@ -250,12 +264,32 @@ def align_segment(x: np.ndarray, y: np.ndarray, penalty: float, band: int):
                     b = _LEFT
             D[u, k] = best + c
             B[u, k] = b
-    vsum = np.zeros(L, np.float64)
-    vcnt = np.zeros(L, np.int64)
-    cost = np.zeros(L, np.float32)
-    partner = np.empty(L, np.int64)
-    u = L - 1
-    v = L - 1
+    # Terminal cell.
+    ue = L1 - 1
+    ve = L2 - 1
+    if free_end:
+        best = inf
+        for v in range(max(0, L1 - 1 - band), min(L2 - 1, L1 - 1 + band) + 1):
+            d = D[L1 - 1, v - (L1 - 1) + band]
+            if d < best:
+                best = d
+                ue = L1 - 1
+                ve = v
+        for u in range(max(0, L2 - 1 - band), min(L1 - 1, L2 - 1 + band) + 1):
+            d = D[u, (L2 - 1) - u + band] + penalty * (L1 - 1 - u)
+            if d < best:
+                best = d
+                ue = u
+                ve = L2 - 1
+    vsum = np.zeros(L1, np.float64)
+    vcnt = np.zeros(L1, np.int64)
+    cost = np.full(L1, np.nan, np.float32)
+    partner = np.full(L1, -1, np.int64)
+    u = ue
+    v = ve
+    if D[u, v - u + band] >= inf:
+        v_of_u = np.full(L1, np.nan)
+        return v_of_u, np.ones(L1, np.int64), cost
     while True:
         k = v - u + band
         vsum[u] += v
@@ -272,18 +306,83 @@ def align_segment(x: np.ndarray, y: np.ndarray, penalty: float, band: int):
             u -= 1
         else:
             v -= 1
-    v_of_u = vsum / np.maximum(vcnt, 1)
+    v_of_u = np.full(L1, np.nan)
+    for u in range(L1):
+        if vcnt[u] > 0:
+            v_of_u[u] = vsum[u] / vcnt[u]
     # Length of the run of u's that share one partner v (a horizontal run).
-    run = np.ones(L, np.int64)
+    run = np.ones(L1, np.int64)
     s = 0
-    while s < L:
+    while s <= ue:
         e = s
-        while e + 1 < L and partner[e + 1] == partner[s] and vcnt[e + 1] == 1 and vcnt[s] == 1:
+        while e + 1 <= ue and partner[e + 1] == partner[s] and vcnt[e + 1] == 1 and vcnt[s] == 1:
             e += 1
         for r in range(s, e + 1):
             run[r] = e - s + 1
         s = e + 1
     return v_of_u, run, cost
+
+
+@njit(cache=True)
+def align_segment(x: np.ndarray, y: np.ndarray, penalty: float, band: int):
+    """Align two equal-length sequences between two rough matches; see :func:`align_path`."""
+    return align_path(x, y, penalty, band, False)
+
+
+@njit(cache=True)
+def _open_end(a, b, i_anchor, j_anchor, forward, scale, lo, hi, penalty, band_fraction, band_min, band_max,
+              occlusion_run, out_j, out_cost):
+    """Match the open end of a line beyond its first (``forward=False``) or last rough match.
+
+    The sequences run away from the anchor; line 2 is resampled by ``scale``
+    (line-2 samples per line-1 sample, from the neighbouring segment) so the
+    path is near the diagonal. The end is free: the line may leave either view.
+    """
+    n1 = a.shape[0]
+    n2 = b.shape[0]
+    C = a.shape[1]
+    if forward:
+        L1 = n1 - i_anchor
+        jmax = min(n2 - 1, hi[n1 - 1])
+        span2 = jmax - j_anchor
+    else:
+        L1 = i_anchor + 1
+        jmin = max(0, lo[0])
+        span2 = j_anchor - jmin
+    if L1 < 2 or span2 < 1:
+        return 0
+    L2 = int(span2 / scale) + 1
+    if L2 < 2:
+        return 0
+    x = np.empty((L1, C), np.float32)
+    for u in range(L1):
+        i = i_anchor + u if forward else i_anchor - u
+        for c in range(C):
+            x[u, c] = a[i, c]
+    y = np.empty((L2, C), np.float32)
+    for v in range(L2):
+        pos = j_anchor + v * scale if forward else j_anchor - v * scale
+        if pos < 0.0:
+            pos = 0.0
+        if pos > n2 - 1:
+            pos = n2 - 1.0
+        j0 = int(np.floor(pos))
+        if j0 >= n2 - 1:
+            j0 = n2 - 2
+        f = pos - j0
+        for c in range(C):
+            y[v, c] = (1.0 - f) * b[j0, c] + f * b[j0 + 1, c]
+    band = min(band_max, max(band_min, int(band_fraction * L1)))
+    v_of_u, run, cost = align_path(x, y, penalty, band, True)
+    n = 0
+    for u in range(1, L1):
+        if np.isnan(v_of_u[u]) or run[u] > occlusion_run:
+            continue
+        i = i_anchor + u if forward else i_anchor - u
+        out_j[i] = j_anchor + v_of_u[u] * scale if forward else j_anchor - v_of_u[u] * scale
+        out_cost[i] = cost[u]
+        n += 1
+    return n
 
 
 @njit(cache=True)
@@ -299,7 +398,7 @@ def _count_strong(da, kps, first, last, strong):
 @njit(cache=True)
 def match_one_line(a, b, lo, hi, threshold, radius, ncoef, max_dist,
                    sv_max_unmatched, sv_strength, penalty, band_fraction, band_min, band_max,
-                   occlusion_run, out_j, out_cost, out_anchor):
+                   occlusion_run, open_ends, out_j, out_cost, out_anchor):
     """Rough + dense matching of one line pair; writes ``out_*`` of line 1's samples.
 
     Returns (key points on line 1, on line 2, rough matches, valid segments, segments).
@@ -323,8 +422,8 @@ def match_one_line(a, b, lo, hi, threshold, radius, ncoef, max_dist,
     kp2 = detect_keypoints(lum2, threshold, 1)
     if kp1.shape[0] < 2 or kp2.shape[0] < 2:
         return kp1.shape[0], kp2.shape[0], 0, 0, 0
-    d1 = fft_descriptors(lum1, kp1, radius, ncoef)
-    d2 = fft_descriptors(lum2, kp2, radius, ncoef)
+    d1 = fft_descriptors(a, kp1, radius, ncoef)
+    d2 = fft_descriptors(b, kp2, radius, ncoef)
     pairs = align_keypoints(kp1, kp2, d1, d2, lo, hi, max_dist)
     npairs = pairs.shape[0]
     da1 = intensity_jumps(lum1)
@@ -369,13 +468,24 @@ def match_one_line(a, b, lo, hi, threshold, radius, ncoef, max_dist,
                 continue  # part of a horizontal run: x has no partner (occluded in view 2)
             out_j[i] = ja + v * scale2
             out_cost[i] = cost[ur]
+    if open_ends and npairs >= 2:
+        # Beyond the first and last rough match, at the scale of the nearest segment.
+        s0 = (kp2[pairs[1, 1]] - kp2[pairs[0, 1]]) / (kp1[pairs[1, 0]] - kp1[pairs[0, 0]])
+        s1 = (kp2[pairs[npairs - 1, 1]] - kp2[pairs[npairs - 2, 1]]) / (
+            kp1[pairs[npairs - 1, 0]] - kp1[pairs[npairs - 2, 0]])
+        s0 = min(2.0, max(0.5, s0))
+        s1 = min(2.0, max(0.5, s1))
+        _open_end(a, b, kp1[pairs[0, 0]], kp2[pairs[0, 1]], False, s0, lo, hi, penalty, band_fraction,
+                  band_min, band_max, occlusion_run, out_j, out_cost)
+        _open_end(a, b, kp1[pairs[npairs - 1, 0]], kp2[pairs[npairs - 1, 1]], True, s1, lo, hi, penalty,
+                  band_fraction, band_min, band_max, occlusion_run, out_j, out_cost)
     return kp1.shape[0], kp2.shape[0], npairs, nvalid, max(npairs - 1, 0)
 
 
 @njit(parallel=True, cache=True)
 def match_lines(I1, off1, I2, off2, lo, hi, threshold, radius, ncoef, max_dist,
                 sv_max_unmatched, sv_strength, penalty, band_fraction, band_min, band_max,
-                occlusion_run):
+                occlusion_run, open_ends):
     """Match every line pair; returns per line-1 sample partner position on line 2.
 
     Args:
@@ -405,7 +515,7 @@ def match_lines(I1, off1, I2, off2, lo, hi, threshold, radius, ncoef, max_dist,
         r = match_one_line(
             I1[s1:e1], I2[s2:e2], lo[s1:e1], hi[s1:e1], threshold, radius, ncoef, max_dist,
             sv_max_unmatched, sv_strength, penalty, band_fraction, band_min, band_max,
-            occlusion_run, out_j[s1:e1], out_cost[s1:e1], out_anchor[s1:e1],
+            occlusion_run, open_ends, out_j[s1:e1], out_cost[s1:e1], out_anchor[s1:e1],
         )
         stats[l, 0] = r[0]
         stats[l, 1] = r[1]
@@ -452,3 +562,170 @@ def depth_runs_filter(depth, line_of, jump, min_run):
                         keep[k] = True
                 r0 = i
     return keep
+
+
+@njit(parallel=True, cache=True)
+def grid_median_check(rows, cols, value, height, width, radius, tol, min_support):
+    """2-D consistency: compare each point's value with the median of its neighbours.
+
+    Points are rasterised into a (height, width) grid (the first point of a
+    cell wins); a point is kept when at least ``min_support`` other cells of
+    its ``(2 radius + 1)^2`` window hold a value and the point is within
+    ``tol`` of their median, or when it has too few neighbours to judge.
+    Returns (keep (N,) bool, support (N,) int64).
+    """
+    n = rows.shape[0]
+    grid = np.full((height, width), np.nan)
+    for k in range(n):
+        r = rows[k]
+        c = cols[k]
+        if 0 <= r < height and 0 <= c < width and np.isnan(grid[r, c]):
+            grid[r, c] = value[k]
+    keep = np.ones(n, np.bool_)
+    support = np.zeros(n, np.int64)
+    size = (2 * radius + 1) * (2 * radius + 1)
+    for k in prange(n):
+        r = rows[k]
+        c = cols[k]
+        buf = np.empty(size, np.float64)
+        m = 0
+        for dr in range(-radius, radius + 1):
+            rr = r + dr
+            if rr < 0 or rr >= height:
+                continue
+            for dc in range(-radius, radius + 1):
+                cc = c + dc
+                if cc < 0 or cc >= width or (dr == 0 and dc == 0):
+                    continue
+                v = grid[rr, cc]
+                if not np.isnan(v):
+                    buf[m] = v
+                    m += 1
+        support[k] = m
+        if m >= min_support:
+            med = np.median(buf[:m])
+            if abs(value[k] - med) > tol:
+                keep[k] = False
+    return keep, support
+
+
+@njit(cache=True)
+def _zncc(a, i, b, jpos, half):
+    """ZNCC of the window a[i-half..i+half, :] with b sampled at jpos-half..jpos+half (linear)."""
+    n1 = a.shape[0]
+    n2 = b.shape[0]
+    C = a.shape[1]
+    if i - half < 0 or i + half >= n1 or jpos - half < 0 or jpos + half > n2 - 1:
+        return -2.0
+    j0 = int(np.floor(jpos))
+    f = jpos - j0
+    sx = 0.0
+    sy = 0.0
+    sxx = 0.0
+    syy = 0.0
+    sxy = 0.0
+    m = 0
+    for s in range(-half, half + 1):
+        jj = j0 + s
+        for c in range(C):
+            x = a[i + s, c]
+            if jj + 1 <= n2 - 1:
+                y = (1.0 - f) * b[jj, c] + f * b[jj + 1, c]
+            else:
+                y = b[jj, c]
+            sx += x
+            sy += y
+            sxx += x * x
+            syy += y * y
+            sxy += x * y
+            m += 1
+    vx = sxx - sx * sx / m
+    vy = syy - sy * sy / m
+    if vx <= 1e-6 * m or vy <= 1e-6 * m:
+        return -2.0
+    return (sxy - sx * sy / m) / np.sqrt(vx * vy)
+
+
+@njit(parallel=True, cache=True)
+def fill_gaps(I1, off1, I2, off2, j, max_gap, radius, half, min_zncc):
+    """Fill short gaps of unmatched samples between matched ones on each line.
+
+    The partner of a sample in a gap is predicted by interpolating its matched
+    neighbours on the line, then searched within ``radius`` samples of the
+    prediction by ZNCC over the window of ``2 half + 1`` samples and all
+    channels (the neighbour lines: a 2-D patch), refined by a parabola.
+    Accepted when the correlation reaches ``min_zncc``. Returns the filled
+    copy of ``j`` and a mask of the filled samples.
+    """
+    L = off1.shape[0] - 1
+    out = j.copy()
+    filled = np.zeros(j.shape[0], np.bool_)
+    for l in prange(L):
+        s1 = off1[l]
+        e1 = off1[l + 1]
+        a = I1[s1:e1]
+        b = I2[off2[l]:off2[l + 1]]
+        n = e1 - s1
+        prev = -1
+        for i in range(n + 1):
+            if i < n and np.isnan(j[s1 + i]):
+                continue
+            if prev >= 0 and i < n and 1 < i - prev <= max_gap + 1:
+                j0 = j[s1 + prev]
+                j1 = j[s1 + i]
+                if j1 > j0:
+                    for g in range(prev + 1, i):
+                        pred = j0 + (j1 - j0) * (g - prev) / (i - prev)
+                        best = -2.0
+                        bj = 0.0
+                        for d in range(-radius, radius + 1):
+                            z = _zncc(a, g, b, pred + d, half)
+                            if z > best:
+                                best = z
+                                bj = pred + d
+                        if best >= min_zncc:
+                            zl = _zncc(a, g, b, bj - 1.0, half)
+                            zr = _zncc(a, g, b, bj + 1.0, half)
+                            den = zl - 2.0 * best + zr
+                            off = 0.0
+                            if zl > -2.0 and zr > -2.0 and den < 0.0:
+                                off = 0.5 * (zl - zr) / den
+                                off = min(0.5, max(-0.5, off))
+                            out[s1 + g] = bj + off
+                            filled[s1 + g] = True
+            prev = i
+    return out, filled
+
+
+@njit(parallel=True, cache=True)
+def refine_subpixel(I1, off1, I2, off2, j, half, max_shift):
+    """Sub-pixel partner positions: a parabola through the ZNCC at j - 1, j, j + 1.
+
+    The DP places partners on its sample grid (after the segment resampling);
+    the window correlation over all channels (neighbour lines included) is
+    smooth near its peak, and its parabola vertex is the sub-sample position.
+    Shifts larger than ``max_shift`` samples (no clear peak) are not applied.
+    """
+    L = off1.shape[0] - 1
+    out = j.copy()
+    for l in prange(L):
+        s1 = off1[l]
+        e1 = off1[l + 1]
+        a = I1[s1:e1]
+        b = I2[off2[l]:off2[l + 1]]
+        for i in range(e1 - s1):
+            jj = j[s1 + i]
+            if np.isnan(jj):
+                continue
+            z0 = _zncc(a, i, b, jj, half)
+            zl = _zncc(a, i, b, jj - 1.0, half)
+            zr = _zncc(a, i, b, jj + 1.0, half)
+            if z0 <= -2.0 or zl <= -2.0 or zr <= -2.0:
+                continue
+            den = zl - 2.0 * z0 + zr
+            if den >= 0.0:
+                continue
+            off = 0.5 * (zl - zr) / den
+            if abs(off) <= max_shift:
+                out[s1 + i] = jj + off
+    return out

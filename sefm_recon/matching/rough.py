@@ -24,10 +24,14 @@ def detect_keypoints(a: np.ndarray, threshold: float) -> np.ndarray:
 
 
 def fft_descriptors(a: np.ndarray, keypoints: np.ndarray, radius: int = 8, ncoef: int = 6) -> np.ndarray:
-    """(len(keypoints), 2 * ncoef) Fourier descriptors of the key points' windows."""
-    return kernels.fft_descriptors(
-        np.ascontiguousarray(a, np.float32), np.asarray(keypoints, np.int64), int(radius), int(ncoef)
-    )
+    """(len(keypoints), 2 * ncoef * C) Fourier descriptors of the key points' windows.
+
+    ``a`` is (n,) or (n, C); channels are described together (joint unit energy).
+    """
+    a2 = np.ascontiguousarray(a, np.float32)
+    if a2.ndim == 1:
+        a2 = a2[:, None]
+    return kernels.fft_descriptors(a2, np.asarray(keypoints, np.int64), int(radius), int(ncoef))
 
 
 def align_keypoints(p, q, desc1, desc2, max_dist: float, lo=None, hi=None) -> np.ndarray:
