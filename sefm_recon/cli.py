@@ -96,6 +96,22 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE")
     ev.add_argument("-q", "--quiet", action="store_true")
     ev.add_argument("-v", "--verbose", action="store_true")
+
+    be = sub.add_parser("bench", help="time SeFM against StereoSGBM on a generated 2000x1500 pair",
+                        description="Render a pair with ground truth and run SeFM (as 'pair --camera') and "
+                                    "StereoSGBM (true rectification) in one process; print wall time, SeFM's "
+                                    "stages, matches, precision/coverage at 1 and 3 px, peak memory and the "
+                                    "time ratio. The last of --repeat runs is reported (warm caches).")
+    be.add_argument("--size", default="2000x1500", metavar="WxH")
+    be.add_argument("--seed", type=int, default=7)
+    be.add_argument("--repeat", type=int, default=2)
+    be.add_argument("--scaling", nargs="*", metavar="WxH",
+                    help="instead: SeFM's per-stage time and memory at these sizes "
+                         "(default 500x375 1000x750 2000x1500 4000x3000), no downscaling")
+    be.add_argument("--json", metavar="FILE", help="also write the report as JSON")
+    be.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE")
+    be.add_argument("-q", "--quiet", action="store_true")
+    be.add_argument("-v", "--verbose", action="store_true")
     return parser
 
 
@@ -150,10 +166,7 @@ def _cmd_eval(args) -> int:
     from .eval_tables import ablation_table, format_ablation_table, format_scene_table, scene_table
 
     load_config(None, args.overrides)  # bad keys fail before any rendering
-    try:
-        w, h = (int(v) for v in args.size.lower().split("x"))
-    except ValueError:
-        raise InputError(f"bad --size {args.size!r}: expected WIDTHxHEIGHT, e.g. 1000x750") from None
+    w, h = _size(args.size)
     rows = scene_table(args.seeds, (w, h), args.pose, args.noise, args.overrides)
     print(f"Scenes {w}x{h}, {args.pose} pose:\n")
     print(format_scene_table(rows))
@@ -166,6 +179,35 @@ def _cmd_eval(args) -> int:
     if args.json:
         with open(args.json, "w") as f:
             json.dump(out, f, indent=1)
+    return 0
+
+
+def _size(text: str) -> tuple[int, int]:
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise InputError(f"bad size {text!r}: expected WIDTHxHEIGHT, e.g. 2000x1500") from None
+    if w < 64 or h < 64:
+        raise InputError(f"bad size {text!r}: at least 64x64")
+    return w, h
+
+
+def _cmd_bench(args) -> int:
+    from .bench import bench, dump, format_report, format_scaling, scaling
+    from .config import load_config
+
+    load_config(None, args.overrides)
+    if args.scaling is not None:
+        sizes = [_size(s) for s in (args.scaling or ["500x375", "1000x750", "2000x1500", "4000x3000"])]
+        rows = scaling(sizes, args.seed, args.overrides)
+        print(format_scaling(rows))
+        if args.json:
+            dump(rows, args.json)
+        return 0
+    report = bench(_size(args.size), args.seed, max(1, args.repeat), args.overrides)
+    print(format_report(report))
+    if args.json:
+        dump(report, args.json)
     return 0
 
 
@@ -192,7 +234,7 @@ def main(argv: list[str] | None = None) -> int:
     _setup_logging(args.quiet, args.verbose)
     _terminate_as_interrupt()
     try:
-        return {"pair": _cmd_pair, "colmap": _cmd_colmap, "eval": _cmd_eval}[args.command](args)
+        return {"pair": _cmd_pair, "colmap": _cmd_colmap, "eval": _cmd_eval, "bench": _cmd_bench}[args.command](args)
     except InputError as err:
         print(f"sefm-recon: error: {err}", file=sys.stderr)
         return 2

@@ -18,8 +18,9 @@ from .errors import InputError
 
 @dataclass
 class SiftConfig:
-    max_features: int = 8192  #: SIFT features per image
+    max_features: int = 4096  #: SIFT features per image
     max_ratio: float = 0.8  #: Lowe's ratio test
+    max_image_size: int = 1024  #: SIFT runs on copies downscaled to this longest side (0 = full size)
 
 
 @dataclass
@@ -55,7 +56,7 @@ class DenseConfig:
     occlusion_penalty: float = 10.0  #: DP cost of a sample without partner
     band_fraction: float = 0.5  #: DP band half width, as a share of the segment length
     band_min: int = 4
-    band_max: int = 64
+    band_max: int = 24
     occlusion_run: int = 2  #: samples sharing one partner beyond this are occluded
     open_ends: bool = True  #: also match beyond the first and last rough match of a line
     both_directions: bool = True  #: match 2->1 as well and keep the consistent matches
@@ -90,7 +91,8 @@ class OutputConfig:
     density_quantile: float = 0.05  #: trim mesh vertices below this Poisson density quantile
     mesh_max_points: int = 300000
     sparse_max_points: int = 100000  #: points written to the COLMAP model
-    clean_outliers: bool = True  #: statistical outlier removal before writing points.ply
+    normals: str = "grid"  #: "grid": from camera 1's pixel grid (fast); "knn": open3d's KD-tree PCA
+    clean_outliers: bool = False  #: open3d statistical outlier removal before writing points.ply (slow; the 2-D check does most of its work)
     progress: bool = True  #: tqdm bar on long runs (the CLI's -q turns it off)
 
 
@@ -167,6 +169,7 @@ def _apply(cfg: Config, section: str, key: str, value: Any) -> None:
 _LIMITS: dict[str, tuple[float | None, float | None, bool]] = {
     "sift.max_features": (1, None, False),
     "sift.max_ratio": (0, 1, True),
+    "sift.max_image_size": (0, None, False),
     "geometry.min_inliers": (5, None, False),
     "geometry.ransac_max_error": (0, None, True),
     "geometry.min_tri_angle_deg": (0, 90, False),
@@ -212,6 +215,10 @@ _LIMITS: dict[str, tuple[float | None, float | None, bool]] = {
 MIN_MAX_SIZE = 256
 
 
+#: String keys and their allowed values.
+_CHOICES: dict[str, tuple[str, ...]] = {"output.normals": ("grid", "knn")}
+
+
 def validate(cfg: Config) -> Config:
     """Check every value's range; raises :class:`InputError` naming the key."""
     import math
@@ -223,6 +230,8 @@ def validate(cfg: Config) -> Config:
             value = getattr(sub, f.name)
             if isinstance(value, float) and not math.isfinite(value):
                 raise InputError(f"config key {key}: expected a finite number, got {value!r}")
+            if key in _CHOICES and value not in _CHOICES[key]:
+                raise InputError(f"config key {key}: one of {', '.join(_CHOICES[key])}, got {value!r}")
             if key not in _LIMITS or isinstance(value, bool) or not isinstance(value, (int, float)):
                 continue
             low, high, low_open = _LIMITS[key]

@@ -112,7 +112,7 @@ def reconstruct_pair(
     t0 = time.perf_counter()
     xy1, xy2 = sift_correspondences(to_gray(v1.image), to_gray(v2.image), cfg.sift.max_features, cfg.sift.max_ratio,
                                     min_features=cfg.geometry.min_inliers if pose is None else 0,
-                                    names=names)
+                                    names=names, max_size=cfg.sift.max_image_size)
     if pose is None:
         g = cfg.geometry
         tv = estimate_two_view(xy1, xy2, v1.K, v2.K, v1.size, v2.size, g.min_inliers, g.ransac_max_error,
@@ -126,7 +126,7 @@ def reconstruct_pair(
     timings.update(dm.timings)
 
     t0 = time.perf_counter()
-    from .reconstruct.points import clean_points, estimate_normals, sample_colors
+    from .reconstruct.points import clean_points, estimate_normals, grid_normals, sample_colors
 
     rgb = sample_colors(v1.image, dm.uv1) if len(dm.uv1) else np.zeros((0, 3), np.uint8)
     keep = np.ones(len(dm.xyz), bool)
@@ -139,7 +139,12 @@ def reconstruct_pair(
             f"no 3D point could be reconstructed: {dm.counts.get('dense_matches', 0)} dense matches, none valid "
             "(too little texture along the epipolar lines, or too little overlap)"
         )
-    normals = estimate_normals(xyz, centres) if len(xyz) >= 3 else None
+    if len(xyz) < 3:
+        normals = None
+    elif cfg.output.normals == "grid":
+        normals = grid_normals(uv1w, xyz, v1.image.shape[:2])
+    else:
+        normals = estimate_normals(xyz, centres)
     timings["points"] = time.perf_counter() - t0
 
     counts = {
@@ -197,7 +202,7 @@ def write_pair_outputs(result: PairResult, cfg: Config, folder: Path, names: tup
 
     t0 = time.perf_counter()
     folder = Path(folder)
-    np.savez_compressed(folder / "matches.npz", uv1=result.uv1.astype(np.float32),
+    np.savez(folder / "matches.npz", uv1=result.uv1.astype(np.float32),
                         uv2=result.uv2.astype(np.float32), score=result.score.astype(np.float32))
     write_point_cloud(folder / "points.ply", result.xyz, result.rgb, result.normals)
     if result.mesh is not None:

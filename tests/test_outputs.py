@@ -251,3 +251,20 @@ def test_render_points_projection_and_zbuffer():
     big = render_points(xyz, rgb, K, R, t, 64, 48, point_size=3)
     assert (big.reshape(-1, 3).any(1)).sum() == 18
     np.testing.assert_array_equal(big[6:9, 9:12].reshape(-1, 3), np.tile([255, 0, 0], (9, 1)))
+
+
+def test_grid_normals_of_a_tilted_plane_face_the_camera():
+    from sefm_recon.reconstruct.points import grid_normals
+
+    K = np.array([[200.0, 0, 50], [0, 200, 40], [0, 0, 1]])
+    jj, ii = np.meshgrid(np.arange(100) + 0.5, np.arange(80) + 0.5)
+    uv = np.c_[jj.ravel(), ii.ravel()]
+    rays = np.c_[uv, np.ones(len(uv))] @ np.linalg.inv(K).T
+    n_true = np.array([0.3, -0.2, -1.0])
+    n_true /= np.linalg.norm(n_true)
+    # plane n . X = d with the camera on the side n points to (d < 0)
+    d = -5.0
+    X = rays * (d / (rays @ n_true))[:, None]
+    n = grid_normals(uv, X, (80, 100))
+    assert np.all(np.abs(n @ n_true - 1) < 1e-6)
+    assert np.all(np.sum(n * -X, axis=1) > 0)

@@ -61,10 +61,15 @@ class LinePairs:
         return self.start2[line] + k[:, None] * self.step2[line]
 
     def all_points1(self) -> np.ndarray:
-        return _expand(self.start1, self.step1, self.count1)
+        """(N1, 2) positions of every sample of image 1 (computed once, then cached: do not modify)."""
+        if getattr(self, "_points1", None) is None:
+            self._points1 = _expand(self.start1, self.step1, self.count1)
+        return self._points1
 
     def all_points2(self) -> np.ndarray:
-        return _expand(self.start2, self.step2, self.count2)
+        if getattr(self, "_points2", None) is None:
+            self._points2 = _expand(self.start2, self.step2, self.count2)
+        return self._points2
 
 
 def _expand(start, step, count) -> np.ndarray:
@@ -301,13 +306,12 @@ def rays_to_pixels(K: np.ndarray, Rc: np.ndarray, basis: np.ndarray, phi: np.nda
 
     Inverse of :func:`ray_angles`; rays behind the camera give NaN.
     """
-    m = np.cos(phi)[:, None] * basis[1] + np.sin(phi)[:, None] * basis[2]
-    d = np.cos(alpha)[:, None] * basis[0] + np.sin(alpha)[:, None] * m  # camera-1 axes
-    x = d @ Rc @ K.T  # rows: K Rc^T d, the ray in this camera's axes, projected
-    with np.errstate(divide="ignore", invalid="ignore"):
-        uv = x[:, :2] / x[:, 2:3]
-    uv[x[:, 2] <= 0] = np.nan
-    return uv
+    from ..matching.kernels import rays_to_pixels as kernel
+
+    # Rows of M map a camera-1-axes ray to homogeneous pixels: x = K Rc^T d.
+    M = np.ascontiguousarray(K @ Rc.T)
+    return kernel(np.ascontiguousarray(phi, np.float64), np.ascontiguousarray(alpha, np.float64),
+                  np.ascontiguousarray(basis, np.float64), M)
 
 
 def neighbour_positions(lp: LinePairs, K: np.ndarray, Rc: np.ndarray, which: int, alpha: np.ndarray,
@@ -322,9 +326,10 @@ def neighbour_positions(lp: LinePairs, K: np.ndarray, Rc: np.ndarray, which: int
     count = lp.count1 if which == 1 else lp.count2
     phi = np.repeat(lp.phi + offset * lp.phi_step, count)
     uv = rays_to_pixels(K, Rc, lp.basis, phi, alpha)
-    centre = lp.all_points1() if which == 1 else lp.all_points2()
     bad = ~np.isfinite(uv).all(axis=1)
-    uv[bad] = centre[bad]
+    if bad.any():
+        centre = lp.all_points1() if which == 1 else lp.all_points2()
+        uv[bad] = centre[bad]
     return uv
 
 

@@ -22,22 +22,17 @@ def triangulate(K1, K2, R, t, uv1, uv2):
         X (N, 3) points; valid (N,) bool: finite, in front of both cameras.
         angle (N,) triangulation angle, radians.
     """
-    uv1 = np.asarray(uv1, np.float64).reshape(-1, 2)
-    uv2 = np.asarray(uv2, np.float64).reshape(-1, 2)
-    d1 = pixel_rays(K1, uv1)
-    d2 = pixel_rays(K2, uv2) @ R  # rows: R^T d2, camera-2 rays in camera-1 axes
+    from ..matching.kernels import triangulate_midpoint
+
+    uv1 = np.ascontiguousarray(uv1, np.float64).reshape(-1, 2)
+    uv2 = np.ascontiguousarray(uv2, np.float64).reshape(-1, 2)
+    R = np.asarray(R, np.float64)
     c2 = -R.T @ np.asarray(t, np.float64).reshape(3)
-    # Solve s1 d1 - s2 d2 = c2 in the least-squares sense for each pair.
-    b = np.sum(d1 * d2, axis=1)
-    e = d1 @ c2
-    f = d2 @ c2
-    den = 1.0 - b * b
-    with np.errstate(divide="ignore", invalid="ignore"):
-        s1 = (e - b * f) / den
-        s2 = (b * e - f) / den
-    X = 0.5 * (s1[:, None] * d1 + (c2[None, :] + s2[:, None] * d2))
-    angle = np.arccos(np.clip(b, -1.0, 1.0))
-    valid = np.isfinite(X).all(axis=1) & (s1 > 0) & (s2 > 0) & (den > 1e-12)
+    with np.errstate(invalid="ignore"):
+        X, s1, s2, cos = triangulate_midpoint(np.linalg.inv(K1), np.linalg.inv(K2), np.ascontiguousarray(R.T), c2,
+                                              uv1, uv2)
+        angle = np.arccos(np.clip(cos, -1.0, 1.0))
+        valid = np.isfinite(X).all(axis=1) & (s1 > 0) & (s2 > 0) & (1.0 - cos * cos > 1e-12)
     return X, valid, angle
 
 

@@ -126,6 +126,7 @@ def align_keypoints(p, q, desc1, desc2, lo, hi, max_dist):
     S = np.zeros((m + 1, n + 1), np.float32)
     B = np.zeros((m + 1, n + 1), np.int8)
     D = desc1.shape[1]
+    max_d2 = max_dist * max_dist
     for i in range(1, m + 1):
         pi = p[i - 1]
         for j in range(1, n + 1):
@@ -136,12 +137,16 @@ def align_keypoints(p, q, desc1, desc2, lo, hi, max_dist):
                 b = _LEFT
             qj = q[j - 1]
             if qj >= lo[pi] and qj <= hi[pi]:
+                # Squared distance, abandoned once past max_dist: most pairs in
+                # the band are far apart, and the descriptors are long.
                 d2 = 0.0
                 for c in range(D):
                     diff = desc1[i - 1, c] - desc2[j - 1, c]
                     d2 += diff * diff
-                dist = np.sqrt(d2)
-                if dist < max_dist:
+                    if d2 >= max_d2:
+                        break
+                if d2 < max_d2:
+                    dist = np.sqrt(d2)
                     cand = S[i - 1, j - 1] + (max_dist - dist)
                     if cand > best:
                         best = cand
@@ -729,3 +734,77 @@ def refine_subpixel(I1, off1, I2, off2, j, half, max_shift):
             if abs(off) <= max_shift:
                 out[s1 + i] = jj + off
     return out
+
+
+@njit(parallel=True, cache=True)
+def rays_to_pixels(phi, alpha, basis, M):
+    """Pixels (N, 2) of the rays (phi, alpha) (see geometry.epipolar.ray_angles); NaN behind the camera.
+
+    The ray is ``cos(alpha) b + sin(alpha) (cos(phi) e_a + sin(phi) e_b)`` with
+    ``basis = (b, e_a, e_b)`` (rows, camera-1 axes), projected by ``x = M d``.
+    """
+    n = phi.shape[0]
+    out = np.empty((n, 2))
+    for k in prange(n):
+        cp = np.cos(phi[k])
+        sp = np.sin(phi[k])
+        ca = np.cos(alpha[k])
+        sa = np.sin(alpha[k])
+        d0 = ca * basis[0, 0] + sa * (cp * basis[1, 0] + sp * basis[2, 0])
+        d1 = ca * basis[0, 1] + sa * (cp * basis[1, 1] + sp * basis[2, 1])
+        d2 = ca * basis[0, 2] + sa * (cp * basis[1, 2] + sp * basis[2, 2])
+        x = M[0, 0] * d0 + M[0, 1] * d1 + M[0, 2] * d2
+        y = M[1, 0] * d0 + M[1, 1] * d1 + M[1, 2] * d2
+        z = M[2, 0] * d0 + M[2, 1] * d1 + M[2, 2] * d2
+        if z > 0:
+            out[k, 0] = x / z
+            out[k, 1] = y / z
+        else:
+            out[k, 0] = np.nan
+            out[k, 1] = np.nan
+    return out
+
+
+@njit(parallel=True, cache=True)
+def triangulate_midpoint(Kinv1, Kinv2, Rt, c2, uv1, uv2):
+    """Midpoint triangulation; see :func:`sefm_recon.geometry.triangulate.triangulate`.
+
+    Rt is R^T (camera-2 rays into camera-1 axes), c2 camera 2's centre in camera 1.
+    Returns X (N, 3), s1 (N,), s2 (N,), cos_angle (N,).
+    """
+    n = uv1.shape[0]
+    X = np.empty((n, 3))
+    s1o = np.empty(n)
+    s2o = np.empty(n)
+    co = np.empty(n)
+    for k in prange(n):
+        a = np.empty(3)
+        b = np.empty(3)
+        for i in range(3):
+            a[i] = Kinv1[i, 0] * uv1[k, 0] + Kinv1[i, 1] * uv1[k, 1] + Kinv1[i, 2]
+        r2 = np.empty(3)
+        for i in range(3):
+            r2[i] = Kinv2[i, 0] * uv2[k, 0] + Kinv2[i, 1] * uv2[k, 1] + Kinv2[i, 2]
+        for i in range(3):
+            b[i] = Rt[i, 0] * r2[0] + Rt[i, 1] * r2[1] + Rt[i, 2] * r2[2]
+        na = np.sqrt(a[0] ** 2 + a[1] ** 2 + a[2] ** 2)
+        nb = np.sqrt(b[0] ** 2 + b[1] ** 2 + b[2] ** 2)
+        for i in range(3):
+            a[i] /= na
+            b[i] /= nb
+        dot = a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+        e = a[0] * c2[0] + a[1] * c2[1] + a[2] * c2[2]
+        f = b[0] * c2[0] + b[1] * c2[1] + b[2] * c2[2]
+        den = 1.0 - dot * dot
+        if den > 0.0:
+            s1 = (e - dot * f) / den
+            s2 = (dot * e - f) / den
+        else:
+            s1 = np.nan
+            s2 = np.nan
+        for i in range(3):
+            X[k, i] = 0.5 * (s1 * a[i] + c2[i] + s2 * b[i])
+        s1o[k] = s1
+        s2o[k] = s2
+        co[k] = dot
+    return X, s1o, s2o, co

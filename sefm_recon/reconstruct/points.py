@@ -152,3 +152,28 @@ def sample_colors(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
         info = np.iinfo(img.dtype)
         return np.clip(np.rint(out), info.min, info.max).astype(img.dtype)
     return out.astype(img.dtype)
+
+
+def grid_normals(uv: np.ndarray, xyz: np.ndarray, shape: tuple[int, int], step: int = 2) -> np.ndarray:
+    """Normals from the image grid: cross product of the 3-D differences to the grid neighbours.
+
+    Dense matches sit on camera 1's pixel grid, so the neighbours that a KD-tree
+    would search for are the points of the neighbouring pixels. Each point's
+    normal is ``(X[r, c+s] - X[r, c-s]) x (X[r+s, c] - X[r-s, c])``, one-sided
+    where a neighbour is missing, oriented towards camera 1 (at the origin).
+    Points without neighbours in both directions face the camera. Linear time,
+    unlike a KD-tree search over millions of points.
+
+    Args:
+        uv: (N, 2) positions in camera 1's image (COLMAP pixels). xyz: (N, 3) in camera 1's frame.
+        shape: (height, width) of that image. step: neighbour distance, pixels.
+    Returns:
+        (N, 3) unit normals.
+    """
+    xyz = np.ascontiguousarray(_as_xyz(xyz))
+    h, w = int(shape[0]), int(shape[1])
+    r = np.clip(np.floor(uv[:, 1]).astype(np.int64), 0, h - 1)
+    c = np.clip(np.floor(uv[:, 0]).astype(np.int64), 0, w - 1)
+    from .kernels import grid_normals as kernel
+
+    return kernel(xyz, r, c, h, w, int(step))
