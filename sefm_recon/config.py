@@ -79,6 +79,7 @@ class ValidityConfig:
     neighbour_tol_px: float = 1.0  #: 2-D check: largest disparity difference from the neighbours' median, px (0 = off)
     neighbour_radius: int = 2  #: 2-D check window half size, px
     neighbour_support: int = 6  #: neighbours needed to judge a match
+    drop_isolated: bool = True  #: drop matches with fewer neighbours than that (instead of keeping them)
     max_cost: float = 40.0  #: dense matches with a higher DP cost are dropped
     min_tri_angle_deg: float = 0.5  #: points seen under a smaller angle are dropped
 

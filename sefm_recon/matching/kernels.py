@@ -570,13 +570,14 @@ def depth_runs_filter(depth, line_of, jump, min_run):
 
 
 @njit(parallel=True, cache=True)
-def grid_median_check(rows, cols, value, height, width, radius, tol, min_support):
+def grid_median_check(rows, cols, value, height, width, radius, tol, min_support, drop_isolated=False):
     """2-D consistency: compare each point's value with the median of its neighbours.
 
     Points are rasterised into a (height, width) grid (the first point of a
     cell wins); a point is kept when at least ``min_support`` other cells of
     its ``(2 radius + 1)^2`` window hold a value and the point is within
-    ``tol`` of their median, or when it has too few neighbours to judge.
+    ``tol`` of their median; a point with too few neighbours to judge is kept,
+    unless ``drop_isolated``.
     Returns (keep (N,) bool, support (N,) int64).
     """
     n = rows.shape[0]
@@ -611,6 +612,8 @@ def grid_median_check(rows, cols, value, height, width, radius, tol, min_support
             med = np.median(buf[:m])
             if abs(value[k] - med) > tol:
                 keep[k] = False
+        elif drop_isolated:
+            keep[k] = False
     return keep, support
 
 

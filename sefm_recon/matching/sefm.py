@@ -247,7 +247,8 @@ def match_pair(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config, pro
         # One pixel of disparity is about 1 / (f * B) in inverse depth.
         scale = float(tv.K1[0, 0] * np.linalg.norm(tv.t))
         keep[ki] = neighbour_consistency(uv1[ki], scale / dist[ki], img1.shape[:2], cfg.validity.neighbour_radius,
-                                         cfg.validity.neighbour_tol_px, cfg.validity.neighbour_support)
+                                         cfg.validity.neighbour_tol_px, cfg.validity.neighbour_support,
+                                         cfg.validity.drop_isolated)
     score = 1.0 / (1.0 + cost[idx] / 8.0)
     timings["validity"] = time.perf_counter() - t0
     counts = {

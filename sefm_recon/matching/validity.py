@@ -32,7 +32,7 @@ def depth_continuity(depth: np.ndarray, line: np.ndarray, jump: float = 0.05, mi
 
 
 def neighbour_consistency(uv: np.ndarray, inv_depth: np.ndarray, shape: tuple[int, int], radius: int = 2,
-                          tol: float = 1e-3, min_support: int = 6) -> np.ndarray:
+                          tol: float = 1e-3, min_support: int = 6, drop_isolated: bool = False) -> np.ndarray:
     """2-D consistency across neighbouring line pairs: keep mask (N,).
 
     Scanline DP decides each line alone, which leaves streaks: runs of wrong
@@ -40,7 +40,9 @@ def neighbour_consistency(uv: np.ndarray, inv_depth: np.ndarray, shape: tuple[in
     depth (proportional to disparity) is compared with the median of the other
     matches in its ``(2 radius + 1)^2`` pixel window of image 1; matches farther
     than ``tol`` from it are dropped (``tol`` in inverse-depth units: a pixel
-    of disparity is about ``1 / (f * baseline)``).
+    of disparity is about ``1 / (f * baseline)``). Matches with fewer than
+    ``min_support`` neighbours are kept, or dropped with ``drop_isolated``
+    (an isolated match in a dense field is most often a wrong one).
 
     Args:
         uv: (N, 2) positions in image 1 (COLMAP pixels). shape: (height, width).
@@ -50,5 +52,6 @@ def neighbour_consistency(uv: np.ndarray, inv_depth: np.ndarray, shape: tuple[in
     cols = np.floor(uv[:, 0]).astype(np.int64)
     rows = np.floor(uv[:, 1]).astype(np.int64)
     keep, _ = kernels.grid_median_check(rows, cols, np.ascontiguousarray(inv_depth, np.float64), int(shape[0]),
-                                        int(shape[1]), int(radius), float(tol), int(min_support))
+                                        int(shape[1]), int(radius), float(tol), int(min_support),
+                                        bool(drop_isolated))
     return keep
