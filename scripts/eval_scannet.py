@@ -17,11 +17,11 @@ import logging
 from pathlib import Path
 
 import numpy as np
-import pycolmap
 
 from sefm_recon.config import load_config
 from sefm_recon.errors import InputError
 from sefm_recon.geometry.two_view import TwoView, epipolar_distances
+from sefm_recon.io.cameras import pinhole_camera
 from sefm_recon.io.images import read_image
 from sefm_recon.pipeline import reconstruct_pair
 
@@ -43,11 +43,6 @@ def read_pairs(folder: Path):
         yield f[0], f[1], K0, K1, T[:3, :3], T[:3, 3]
 
 
-def camera(K, w, h, cid):
-    return pycolmap.Camera(camera_id=cid, model="PINHOLE", width=w, height=h,
-                           params=[K[0, 0], K[1, 1], K[0, 2], K[1, 2]])
-
-
 def angle_deg(R):
     return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1))))
 
@@ -64,8 +59,8 @@ def main():
     rows = []
     for n0, n1, K0, K1, R, t in read_pairs(args.data):
         img0, img1 = read_image(args.data / n0), read_image(args.data / n1)
-        cam0 = camera(K0, img0.shape[1], img0.shape[0], 1)
-        cam1 = camera(K1, img1.shape[1], img1.shape[0], 2)
+        cam0 = pinhole_camera(K0, img0.shape[1], img0.shape[0], 1)
+        cam1 = pinhole_camera(K1, img1.shape[1], img1.shape[0], 2)
         row = {"pair": f"{n0} {n1}"}
         try:
             res = reconstruct_pair(img0, img1, cam0, cam1, cfg, pose=(R, t) if args.pose == "true" else None)

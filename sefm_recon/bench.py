@@ -47,22 +47,13 @@ def peak_memory_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
-def _camera(view, cid):
-    import pycolmap
-
-    K = view.K
-    h, w = view.depth.shape
-    return pycolmap.Camera(camera_id=cid, model="PINHOLE", width=w, height=h,
-                           params=[K[0, 0], K[1, 1], K[0, 2], K[1, 2]])
-
-
 def run_sefm(v1, v2, cfg, write: bool = True) -> tuple[dict, dict]:
     """One timed SeFM run (as ``sefm-recon pair --camera``); returns (timings, counts) and the matches."""
     from .pipeline import reconstruct_pair, write_pair_outputs
 
     reset_peak_memory()
     t0 = time.perf_counter()
-    res = reconstruct_pair(v1.image, v2.image, _camera(v1, 1), _camera(v2, 2), cfg)
+    res = reconstruct_pair(v1.image, v2.image, v1.camera(1), v2.camera(2), cfg)
     if write:
         with tempfile.TemporaryDirectory() as tmp:
             write_pair_outputs(res, cfg, Path(tmp), (v1.name, v2.name))

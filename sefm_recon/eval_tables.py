@@ -39,15 +39,6 @@ ABLATIONS: dict[str, list[str]] = {
 METRICS = ("precision@1", "precision@3", "coverage@1", "coverage@3")
 
 
-def _camera(view, cid):
-    import pycolmap
-
-    K = view.K
-    h, w = view.depth.shape
-    return pycolmap.Camera(camera_id=cid, model="PINHOLE", width=w, height=h,
-                           params=[K[0, 0], K[1, 1], K[0, 2], K[1, 2]])
-
-
 def _scene(seed, size, noise):
     from .synthetic import render_scene
 
@@ -62,7 +53,7 @@ def _sefm(v1, v2, pose, overrides, cov):
 
     cfg = load_config(None, ["output.mesh=false", "output.progress=false", *overrides])
     t0 = time.perf_counter()
-    res = reconstruct_pair(v1.image, v2.image, _camera(v1, 1), _camera(v2, 2), cfg, pose=pose)
+    res = reconstruct_pair(v1.image, v2.image, v1.camera(1), v2.camera(2), cfg, pose=pose)
     seconds = time.perf_counter() - t0
     return res, {"seconds": seconds, **evaluate_matches(res.uv1, res.uv2, v1, v2, covisible=cov)}
 

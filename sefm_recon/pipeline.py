@@ -19,7 +19,7 @@ import pycolmap
 from . import __version__
 from .config import Config
 from .errors import InputError
-from .geometry.two_view import TwoView, estimate_two_view, sift_correspondences, with_known_pose
+from .geometry.two_view import estimate_two_view, sift_correspondences, with_known_pose
 from .geometry.undistort import WorkingView, make_working_view
 from .io.cameras import camera_to_string, infer_camera, parse_camera
 from .io.images import check_texture, read_image, to_gray
@@ -49,6 +49,8 @@ class PairResult:
     mesh: tuple | None = None  #: (vertices, triangles, colours, normals)
     view1: WorkingView | None = None
     view2: WorkingView | None = None
+    image1: np.ndarray | None = None  #: the original photos (references, for the match picture)
+    image2: np.ndarray | None = None
     sift_uv1: np.ndarray | None = None  #: (M, 2) SIFT matches consistent with the geometry, image 1
     sift_uv2: np.ndarray | None = None
 
@@ -159,7 +161,7 @@ def reconstruct_pair(
         image_size=[[img1.shape[1], img1.shape[0]], [img2.shape[1], img2.shape[0]]],
         counts=counts, timings=timings, view1=v1, view2=v2,
         notes={"pose": tv.source},
-        sift_uv1=v1.to_original(tv.kp1), sift_uv2=v2.to_original(tv.kp2),
+        sift_uv1=v1.to_original(tv.kp1), sift_uv2=v2.to_original(tv.kp2), image1=img1, image2=img2,
     )
     if cfg.output.mesh:
         t0 = time.perf_counter()
@@ -211,21 +213,12 @@ def write_pair_outputs(result: PairResult, cfg: Config, folder: Path, names: tup
     write_two_view_model(folder / "sparse", result.camera1, result.camera2, names[0], names[1], result.R,
                          result.t, result.uv1, result.uv2, result.xyz, result.rgb,
                          max_points=cfg.output.sparse_max_points)
-    if result.view1 is not None and result.view2 is not None:
-        # Drawn on the working images with working coordinates, for speed.
-        from .geometry.undistort import WorkingView  # noqa: F401
-
-        pic = draw_matches(_orig_or_work(result, 1), _orig_or_work(result, 2), result.uv1, result.uv2)
-        write_image(folder / "matches.png", pic)
+    if result.image1 is not None and result.image2 is not None:
+        write_image(folder / "matches.png", draw_matches(result.image1, result.image2, result.uv1, result.uv2))
     result.timings["write"] = time.perf_counter() - t0
     report = build_report(result, cfg, names)
     (folder / "report.json").write_text(json.dumps(report, indent=2))
     return report
-
-
-def _orig_or_work(result: PairResult, which: int) -> np.ndarray:
-    return result.notes[f"image{which}"] if f"image{which}" in result.notes else (
-        result.view1 if which == 1 else result.view2).image
 
 
 def run_pair(
@@ -254,7 +247,6 @@ def run_pair(
         )
     cam1, cam2, sources = resolve_cameras(image1, image2, img1, img2, camera, camera2)
     result = reconstruct_pair(img1, img2, cam1, cam2, cfg, pose=pose, progress=progress, names=names)
-    result.notes["image1"], result.notes["image2"] = img1, img2
     with StagedOutput(out, overwrite, results=PAIR_RESULTS) as stage:
         report = write_pair_outputs(result, cfg, stage, (Path(image1).name, Path(image2).name))
         report["camera_sources"] = sources

@@ -61,6 +61,12 @@ class SyntheticView:
         """Camera centre in world coordinates."""
         return -self.R.T @ self.t
 
+    def camera(self, camera_id: int = 1):
+        """This view's camera as a :class:`pycolmap.Camera` (PINHOLE)."""
+        from .io.cameras import pinhole_camera
+
+        return pinhole_camera(self.K, self.depth.shape[1], self.depth.shape[0], camera_id)
+
 
 @dataclass
 class SyntheticScene:
@@ -845,12 +851,7 @@ def write_workspace(scene: SyntheticScene, out_dir) -> Path:
     (out / "gt").mkdir(parents=True, exist_ok=True)
     rec = pycolmap.Reconstruction()
     for i, vw in enumerate(scene.views, start=1):
-        H, W = vw.depth.shape
-        K = vw.K
-        cam = pycolmap.Camera(
-            camera_id=i, model="PINHOLE", width=W, height=H, params=[K[0, 0], K[1, 1], K[0, 2], K[1, 2]]
-        )
-        rec.add_camera_with_trivial_rig(cam)
+        rec.add_camera_with_trivial_rig(vw.camera(i))
         im = pycolmap.Image(name=vw.name, camera_id=i, image_id=i)
         rec.add_image_with_trivial_frame(im, pycolmap.Rigid3d(np.hstack([vw.R, vw.t.reshape(3, 1)])))
         if not cv2.imwrite(str(out / "images" / vw.name), cv2.cvtColor(vw.image, cv2.COLOR_RGB2BGR)):

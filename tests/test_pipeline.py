@@ -1,24 +1,16 @@
 """The pair pipeline through the Python API, scored against ground truth."""
 
 import numpy as np
-import pycolmap
 
 from sefm_recon.config import load_config
 from sefm_recon.evaluate import evaluate_matches
 from sefm_recon.pipeline import reconstruct_pair
 
 
-def _camera(view, cid):
-    K = view.K
-    h, w = view.depth.shape
-    return pycolmap.Camera(camera_id=cid, model="PINHOLE", width=w, height=h,
-                           params=[K[0, 0], K[1, 1], K[0, 2], K[1, 2]])
-
-
 def test_estimated_pose_pipeline_is_accurate(small_scene):
     v1, v2 = small_scene.views
     cfg = load_config(None, ["output.mesh=false"])
-    res = reconstruct_pair(v1.image, v2.image, _camera(v1, 1), _camera(v2, 2), cfg)
+    res = reconstruct_pair(v1.image, v2.image, v1.camera(1), v2.camera(2), cfg)
     m = evaluate_matches(res.uv1, res.uv2, v1, v2)
     assert m["matches"] > 20_000
     assert m["precision@3"] > 0.9
@@ -36,7 +28,7 @@ def test_known_pose_pipeline_matches_the_metric_scale(small_scene):
     R = v2.R @ v1.R.T
     t = v2.t - R @ v1.t
     cfg = load_config(None, ["output.mesh=false"])
-    res = reconstruct_pair(v1.image, v2.image, _camera(v1, 1), _camera(v2, 2), cfg, pose=(R, t))
+    res = reconstruct_pair(v1.image, v2.image, v1.camera(1), v2.camera(2), cfg, pose=(R, t))
     z_true = v1.depth[res.uv1[:, 1].astype(int), res.uv1[:, 0].astype(int)]
     assert np.median(np.abs(res.xyz[:, 2] - z_true) / z_true) < 0.01
     assert evaluate_matches(res.uv1, res.uv2, v1, v2)["precision@3"] > 0.9

@@ -128,12 +128,6 @@ def sift_correspondences(gray1, gray2, max_features: int = 8192, max_ratio: floa
     return xy1[m[:, 0]], xy2[m[:, 1]]
 
 
-def _pinhole(K: np.ndarray, width: int, height: int, camera_id: int) -> pycolmap.Camera:
-    cam = pycolmap.Camera.create_from_model_name(camera_id, "PINHOLE", 1.0, width, height)
-    cam.params = np.array([K[0, 0], K[1, 1], K[0, 2], K[1, 2]])
-    return cam
-
-
 def estimate_two_view(
     xy1: np.ndarray,
     xy2: np.ndarray,
@@ -158,8 +152,10 @@ def estimate_two_view(
         InputError: too few inliers (unrelated images or too little overlap), or
             no baseline (the same photo twice, or a pure rotation).
     """
-    cam1 = _pinhole(K1, *size1, 1)
-    cam2 = _pinhole(K2, *size2, 2)
+    from ..io.cameras import pinhole_camera
+
+    cam1 = pinhole_camera(K1, *size1, 1)
+    cam2 = pinhole_camera(K2, *size2, 2)
 
     def ransac(min_num_inliers: int):
         opts = pycolmap.TwoViewGeometryOptions()

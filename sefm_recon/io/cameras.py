@@ -60,6 +60,12 @@ def parse_camera(text: str, camera_id: int = 1) -> pycolmap.Camera:
     return camera
 
 
+def pinhole_camera(K: np.ndarray, width: int, height: int, camera_id: int = 1) -> pycolmap.Camera:
+    """A COLMAP ``PINHOLE`` camera from a 3x3 matrix (COLMAP pixel convention)."""
+    return pycolmap.Camera(camera_id=camera_id, model="PINHOLE", width=int(width), height=int(height),
+                           params=[K[0, 0], K[1, 1], K[0, 2], K[1, 2]])
+
+
 def camera_to_string(camera: pycolmap.Camera) -> str:
     """Inverse of :func:`parse_camera`."""
     params = " ".join(f"{p:.10g}" for p in camera.params)
