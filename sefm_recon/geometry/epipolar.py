@@ -107,11 +107,10 @@ def ray_angles(K: np.ndarray, Rc: np.ndarray, basis: np.ndarray, xy: np.ndarray)
     ``Rc`` rotates the camera's axes into camera 1's (identity for camera 1,
     ``R.T`` for camera 2).
     """
-    rays = np.c_[xy, np.ones(len(xy))] @ np.linalg.inv(K).T @ Rc.T
-    rb, ra, rbb = rays @ basis[0], rays @ basis[1], rays @ basis[2]
-    phi = np.arctan2(rbb, ra)
-    alpha = np.arctan2(np.hypot(ra, rbb), rb)
-    return phi, alpha
+    from ..matching.kernels import ray_angles as kernel
+
+    Minv = np.ascontiguousarray(Rc @ np.linalg.inv(K))
+    return kernel(Minv, np.ascontiguousarray(basis, np.float64), np.ascontiguousarray(xy, np.float64).reshape(-1, 2))
 
 
 def _border(width: int, height: int, n: int = 64) -> np.ndarray:

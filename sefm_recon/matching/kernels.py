@@ -590,30 +590,38 @@ def grid_median_check(rows, cols, value, height, width, radius, tol, min_support
     keep = np.ones(n, np.bool_)
     support = np.zeros(n, np.int64)
     size = (2 * radius + 1) * (2 * radius + 1)
-    for k in prange(n):
-        r = rows[k]
-        c = cols[k]
-        buf = np.empty(size, np.float64)
-        m = 0
-        for dr in range(-radius, radius + 1):
-            rr = r + dr
-            if rr < 0 or rr >= height:
-                continue
-            for dc in range(-radius, radius + 1):
-                cc = c + dc
-                if cc < 0 or cc >= width or (dr == 0 and dc == 0):
+    chunk = 4096
+    nchunks = (n + chunk - 1) // chunk
+    for ci in prange(nchunks):
+        buf = np.empty(size, np.float64)  # one buffer per chunk, not per point
+        for k in range(ci * chunk, min(n, (ci + 1) * chunk)):
+            r = rows[k]
+            c = cols[k]
+            m = 0
+            for dr in range(-radius, radius + 1):
+                rr = r + dr
+                if rr < 0 or rr >= height:
                     continue
-                v = grid[rr, cc]
-                if not np.isnan(v):
-                    buf[m] = v
-                    m += 1
-        support[k] = m
-        if m >= min_support:
-            med = np.median(buf[:m])
-            if abs(value[k] - med) > tol:
+                for dc in range(-radius, radius + 1):
+                    cc = c + dc
+                    if cc < 0 or cc >= width or (dr == 0 and dc == 0):
+                        continue
+                    v = grid[rr, cc]
+                    if not np.isnan(v):
+                        # insertion sort: at most (2 radius + 1)^2 - 1 values
+                        p = m
+                        while p > 0 and buf[p - 1] > v:
+                            buf[p] = buf[p - 1]
+                            p -= 1
+                        buf[p] = v
+                        m += 1
+            support[k] = m
+            if m >= min_support:
+                med = buf[m // 2] if m % 2 == 1 else 0.5 * (buf[m // 2 - 1] + buf[m // 2])
+                if abs(value[k] - med) > tol:
+                    keep[k] = False
+            elif drop_isolated:
                 keep[k] = False
-        elif drop_isolated:
-            keep[k] = False
     return keep, support
 
 
@@ -811,3 +819,26 @@ def triangulate_midpoint(Kinv1, Kinv2, Rt, c2, uv1, uv2):
         s2o[k] = s2
         co[k] = dot
     return X, s1o, s2o, co
+
+
+@njit(parallel=True, cache=True)
+def ray_angles(Minv, basis, xy):
+    """(phi, alpha) of pixel rays; see :func:`sefm_recon.geometry.epipolar.ray_angles`.
+
+    ``Minv`` maps homogeneous pixels to rays in camera-1 axes (Rc K^-1).
+    """
+    n = xy.shape[0]
+    phi = np.empty(n)
+    alpha = np.empty(n)
+    for k in prange(n):
+        x = xy[k, 0]
+        y = xy[k, 1]
+        r0 = Minv[0, 0] * x + Minv[0, 1] * y + Minv[0, 2]
+        r1 = Minv[1, 0] * x + Minv[1, 1] * y + Minv[1, 2]
+        r2 = Minv[2, 0] * x + Minv[2, 1] * y + Minv[2, 2]
+        rb = r0 * basis[0, 0] + r1 * basis[0, 1] + r2 * basis[0, 2]
+        ra = r0 * basis[1, 0] + r1 * basis[1, 1] + r2 * basis[1, 2]
+        re = r0 * basis[2, 0] + r1 * basis[2, 1] + r2 * basis[2, 2]
+        phi[k] = np.arctan2(re, ra)
+        alpha[k] = np.arctan2(np.sqrt(ra * ra + re * re), rb)
+    return phi, alpha
