@@ -46,7 +46,7 @@ def test_pair_writes_every_output(demo_out):
     assert counts["points"] <= counts["valid_matches"] <= counts["dense_matches"]
     assert report["image_size"] == [[640, 480], [640, 480]]
     m = np.load(demo_out / "matches.npz")
-    assert m["uv1"].shape == m["uv2"].shape == (counts["valid_matches"] if False else m["uv1"].shape[0], 2)
+    assert m["uv1"].shape == m["uv2"].shape == (counts["points"], 2)  # one match per point of points.ply
     assert len(m["score"]) == len(m["uv1"])
     header = read_ply_header(demo_out / "points.ply")
     assert header["format"].startswith("binary")
