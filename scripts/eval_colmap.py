@@ -29,39 +29,6 @@ from pathlib import Path
 import numpy as np  # before pycolmap (otherwise cv2 cannot write PNGs)
 
 
-def _sfm(ws: Path, scene):
-    """Replace ``ws/sparse`` by pycolmap's SfM model in ``ws/sparse/0``; returns the similarity to the truth."""
-    import pycolmap
-
-    for p in (ws / "sparse").iterdir():
-        p.unlink()
-    db = ws / "sfm.db"
-    ext = pycolmap.FeatureExtractionOptions()
-    ext.use_gpu = False
-    pycolmap.extract_features(db, ws / "images", extraction_options=ext, device=pycolmap.Device.cpu)
-    mat = pycolmap.FeatureMatchingOptions()
-    mat.use_gpu = False
-    pycolmap.match_exhaustive(db, matching_options=mat, device=pycolmap.Device.cpu)
-    (ws / "sparse" / "0").mkdir()
-    opts = pycolmap.IncrementalPipelineOptions()
-    opts.random_seed = 0
-    recs = pycolmap.incremental_mapping(db, ws / "images", ws / "sparse", options=opts)
-    rec = recs[0]
-    by_name = {im.name: im for im in rec.images.values()}
-    rots, cm, ct = [], [], []
-    for v in scene.views:
-        M = np.asarray(by_name[v.name].cam_from_world().matrix())
-        rots.append(v.R.T @ M[:, :3])
-        cm.append(-M[:, :3].T @ M[:, 3])
-        ct.append(v.center)
-    U, _, Vt = np.linalg.svd(sum(rots))
-    R = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
-    cm, ct = np.array(cm), np.array(ct)
-    a, b = (cm - cm.mean(0)) @ R.T, ct - ct.mean(0)
-    s = float(np.sum(a * b) / np.sum(a * a))
-    return s, R, ct.mean(0) - s * R @ cm.mean(0)
-
-
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seed", type=int, default=21)
@@ -80,7 +47,7 @@ def main(argv=None) -> int:
 
     from sefm_recon.evaluate import surface_distances
     from sefm_recon.io.ply import read_ply_header, read_point_cloud
-    from sefm_recon.synthetic import render_scene, write_workspace
+    from sefm_recon.synthetic import align_to_truth, colmap_sfm, render_scene, write_workspace
 
     tmp = None
     if a.keep:
@@ -93,7 +60,7 @@ def main(argv=None) -> int:
     ws = write_workspace(scene, root / "ws")
     align = (1.0, np.eye(3), np.zeros(3))
     if a.sfm:
-        align = _sfm(ws, scene)
+        align = align_to_truth(colmap_sfm(ws), scene)
     out = root / "out"
     cmd = [sys.executable, "-m", "sefm_recon", "colmap", str(ws), "-o", str(out), "--overwrite", "-q"]
     if a.workers:

@@ -870,6 +870,55 @@ def write_workspace(scene: SyntheticScene, out_dir) -> Path:
     return out
 
 
+def colmap_sfm(ws_dir):
+    """Replace ``ws_dir/sparse`` by COLMAP's own SfM of ``ws_dir/images`` (in ``sparse/0``).
+
+    SIFT, exhaustive matching and incremental mapping through pycolmap, so the
+    workspace is what COLMAP itself writes (estimated cameras, poses up to a
+    similarity, sparse points). Returns the first :class:`pycolmap.Reconstruction`.
+    """
+    import pycolmap
+
+    ws = Path(ws_dir)
+    for p in (ws / "sparse").iterdir():
+        p.unlink()
+    db = ws / "sfm.db"
+    ext = pycolmap.FeatureExtractionOptions()
+    ext.use_gpu = False
+    pycolmap.extract_features(db, ws / "images", extraction_options=ext, device=pycolmap.Device.cpu)
+    mat = pycolmap.FeatureMatchingOptions()
+    mat.use_gpu = False
+    pycolmap.match_exhaustive(db, matching_options=mat, device=pycolmap.Device.cpu)
+    (ws / "sparse" / "0").mkdir()
+    opts = pycolmap.IncrementalPipelineOptions()
+    opts.random_seed = 0
+    recs = pycolmap.incremental_mapping(db, ws / "images", ws / "sparse", options=opts)
+    if not recs:
+        raise RuntimeError("pycolmap's incremental mapping reconstructed nothing")
+    return recs[0]
+
+
+def align_to_truth(rec, scene: SyntheticScene):
+    """Similarity ``X_true = s R X + t`` from a model's image poses to the scene's true ones.
+
+    Returns ``(s, R, t)``; the rotation is the chordal mean of the per-view
+    rotation differences, scale and translation fit the camera centres.
+    """
+    by_name = {im.name: im for im in rec.images.values()}
+    rots, cm, ct = [], [], []
+    for v in scene.views:
+        M = np.asarray(by_name[v.name].cam_from_world().matrix())
+        rots.append(v.R.T @ M[:, :3])
+        cm.append(-M[:, :3].T @ M[:, 3])
+        ct.append(v.center)
+    U, _, Vt = np.linalg.svd(sum(rots))
+    R = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
+    cm, ct = np.array(cm), np.array(ct)
+    a, b = (cm - cm.mean(0)) @ R.T, ct - ct.mean(0)
+    s = float(np.sum(a * b) / np.sum(a * a))
+    return s, R, ct.mean(0) - s * R @ cm.mean(0)
+
+
 def read_workspace(ws_dir) -> SyntheticScene:
     """Read a workspace written by :func:`write_workspace`."""
     import cv2

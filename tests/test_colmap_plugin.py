@@ -32,7 +32,7 @@ from sefm_recon.evaluate import surface_distances
 from sefm_recon.io.colmap_database import PairMatches, quantise_matches
 from sefm_recon.io.ply import read_ply_header, read_point_cloud
 from sefm_recon.reconstruct.fuse import fuse_point_clouds
-from sefm_recon.synthetic import render_scene, write_workspace
+from sefm_recon.synthetic import align_to_truth, colmap_sfm, render_scene, write_workspace
 
 
 def run_cli(*args, timeout=600):
@@ -88,38 +88,9 @@ def _distorted_workspace(scene, root: Path, k: float = 0.04) -> Path:
 def _sfm_workspace(scene, root: Path) -> Path:
     """COLMAP's own pipeline on the rendered images: SIFT, exhaustive matching, incremental mapping."""
     write_workspace(scene, root)
-    for p in (root / "sparse").iterdir():
-        p.unlink()
-    db = root / "sfm.db"
-    ext = pycolmap.FeatureExtractionOptions()
-    ext.use_gpu = False
-    pycolmap.extract_features(db, root / "images", extraction_options=ext, device=pycolmap.Device.cpu)
-    mat = pycolmap.FeatureMatchingOptions()
-    mat.use_gpu = False
-    pycolmap.match_exhaustive(db, matching_options=mat, device=pycolmap.Device.cpu)
-    (root / "sparse" / "0").mkdir()
-    opts = pycolmap.IncrementalPipelineOptions()
-    opts.random_seed = 0
-    recs = pycolmap.incremental_mapping(db, root / "images", root / "sparse", options=opts)
-    assert recs and recs[0].num_reg_images() == len(scene.views), "pycolmap's SfM did not register every view"
+    rec = colmap_sfm(root)
+    assert rec.num_reg_images() == len(scene.views), "pycolmap's SfM did not register every view"
     return root
-
-
-def _align_to_truth(rec, scene):
-    """Similarity ``X_true = s R X + t`` from the model's image poses to the true ones."""
-    by_name = {im.name: im for im in rec.images.values()}
-    rots, cm, ct = [], [], []
-    for v in scene.views:
-        M = np.asarray(by_name[v.name].cam_from_world().matrix())
-        rots.append(v.R.T @ M[:, :3])
-        cm.append(-M[:, :3].T @ M[:, 3])
-        ct.append(v.center)
-    U, _, Vt = np.linalg.svd(sum(rots))
-    R = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
-    cm, ct = np.array(cm), np.array(ct)
-    a, b = (cm - cm.mean(0)) @ R.T, ct - ct.mean(0)
-    s = float(np.sum(a * b) / np.sum(a * a))
-    return s, R, ct.mean(0) - s * R @ cm.mean(0)
 
 
 # ------------------------------------------------------------ the main workspace
@@ -293,7 +264,7 @@ def test_workspace_from_pycolmap_sfm(small_scene3, tmp_path):
     xyz, _, _ = read_point_cloud(tmp_path / "out" / "fused.ply")
     assert len(xyz) > 30_000
     # the dense cloud agrees with COLMAP's own sparse points, in COLMAP's frame
-    s, R, t = _align_to_truth(model, small_scene3)
+    s, R, t = align_to_truth(model, small_scene3)
     size = small_scene3.meta["scene_size"] / s  # in the model's units
     sparse_pts = np.array([p.xyz for p in model.points3D.values()])
     assert np.mean(_nearest_distances(sparse_pts, xyz) <= 0.01 * size) >= 0.95

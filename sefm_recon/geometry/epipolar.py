@@ -349,10 +349,3 @@ def sample_points(image: np.ndarray, pts: np.ndarray) -> np.ndarray:
     my = np.concatenate([p[:, 1], np.zeros(pad, np.float32)]).reshape(rows, width)
     out = cv2.remap(img, mx, my, interpolation=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
     return out.reshape(rows * width, -1)[:total]
-
-
-def alpha_of_samples(lp: LinePairs, K: np.ndarray, Rc: np.ndarray, which: int) -> np.ndarray:
-    """Angle alpha (radians) of every sample's viewing ray from the baseline, flat (N,)."""
-    pts = lp.all_points1() if which == 1 else lp.all_points2()
-    _, alpha = ray_angles(K, Rc, lp.basis, pts)
-    return alpha

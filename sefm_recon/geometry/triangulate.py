@@ -5,12 +5,6 @@ from __future__ import annotations
 import numpy as np
 
 
-def pixel_rays(K: np.ndarray, uv: np.ndarray) -> np.ndarray:
-    """Unit viewing rays (N, 3), camera axes, of pixels ``uv`` (N, 2), COLMAP convention."""
-    r = np.c_[uv, np.ones(len(uv))] @ np.linalg.inv(K).T
-    return r / np.linalg.norm(r, axis=1, keepdims=True)
-
-
 def triangulate(K1, K2, R, t, uv1, uv2):
     """Midpoint triangulation of matches in camera 1's frame.
 

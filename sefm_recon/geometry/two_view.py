@@ -110,13 +110,8 @@ def sift_correspondences(gray1, gray2, max_features: int = 8192, max_ratio: floa
     Raises :class:`InputError` when an image has fewer than ``min_features``
     SIFT features (a textureless image: nothing to estimate geometry from).
     """
-    # Both images at once: pycolmap's extractor releases the GIL, so two threads use both cores.
-    from concurrent.futures import ThreadPoolExecutor
-
-    with ThreadPoolExecutor(2) as pool:
-        f1 = pool.submit(extract_sift, gray1, max_features, max_size)
-        f2 = pool.submit(extract_sift, gray2, max_features, max_size)
-        (xy1, d1), (xy2, d2) = f1.result(), f2.result()
+    xy1, d1 = extract_sift(gray1, max_features, max_size)
+    xy2, d2 = extract_sift(gray2, max_features, max_size)
     for xy, name in ((xy1, names[0]), (xy2, names[1])):
         if len(xy) < min_features:
             raise InputError(

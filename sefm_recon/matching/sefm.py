@@ -90,7 +90,7 @@ def search_band(lp: LinePairs, tv: TwoView, depths: tuple[float, float], slack: 
         a2_lo = np.arctan2(dmax * np.sin(a1), dmax * np.cos(a1) - B)
     else:
         a2_lo = a1.copy()
-    off1, off2 = lp.offset1, lp.offset2
+    off2 = lp.offset2
     line1 = np.repeat(np.arange(len(lp)), lp.count1)
     line2 = np.repeat(np.arange(len(lp)), lp.count2)
     # alpha is in [0, pi] and increases along each line: offsetting by 8 per line
@@ -101,7 +101,6 @@ def search_band(lp: LinePairs, tv: TwoView, depths: tuple[float, float], slack: 
     n2 = lp.count2[line1]
     lo = np.clip(lo, 0, n2 - 1).astype(np.int64)
     hi = np.clip(hi, -1, n2 - 1).astype(np.int64)
-    del off1
     return lo, hi
 
 
