@@ -20,8 +20,8 @@ from pathlib import Path
 
 logger = logging.getLogger(__name__)
 
-#: Stages counted as "matching" for the SeFM/SGBM comparison: what replaces SGBM.
-MATCHING_STAGES = ("line_pairs", "matching", "validity")
+#: Stages counted as "matching" for the SeFM/SGBM comparison: what replaces SGBM (coarse: the half-size level).
+MATCHING_STAGES = ("coarse", "line_pairs", "matching", "validity")
 
 
 def reset_peak_memory() -> bool:

@@ -52,6 +52,16 @@ class RoughConfig:
 
 
 @dataclass
+class PyramidConfig:
+    """Coarse to fine: a half-size match first bounds each sample's search band."""
+
+    min_size: int = 600  #: images with a longer side than this are matched at half size first (0 = never)
+    radius: int = 2  #: coarse pixels around a sample whose depths bound its band
+    coarse_subpixel: bool = False  #: sub-pixel refinement, gap filling and the ZNCC test at the coarse levels too
+    fill_width: int = 12  #: unmatched samples whose coarse-bounded band is at most this wide are matched by ZNCC (0 = off)
+
+
+@dataclass
 class DenseConfig:
     occlusion_penalty: float = 10.0  #: DP cost of a sample without partner
     band_fraction: float = 0.5  #: DP band half width, as a share of the segment length
@@ -60,10 +70,13 @@ class DenseConfig:
     occlusion_run: int = 2  #: samples sharing one partner beyond this are occluded
     open_ends: bool = True  #: also match beyond the first and last rough match of a line
     both_directions: bool = True  #: match 2->1 as well and keep the consistent matches
+    reverse_max_size: int = 1200  #: ...on images (pyramid levels) up to this longest side; larger ones use the ZNCC test below (0 = always)
+    single_min_zncc: float = 0.5  #: min_zncc where the reverse pass does not run: it does most of its work at half the cost
     consistency_px: float = 1.0  #: largest round-trip difference, samples
     subpixel: bool = True  #: refine partners by a parabola through the window correlation
     subpixel_half_window: int = 7  #: its ZNCC window half length, samples (all neighbour-line channels)
     subpixel_iterations: int = 1
+    min_zncc: float = -1.0  #: drop matches whose window ZNCC (all channels) is below this; needs subpixel (-1 = keep all)
     fill_max_gap: int = 64  #: fill gaps up to this many samples between matches on a line (0 = off)
     fill_radius: int = 3  #: search this many samples around the interpolated partner
     fill_half_window: int = 3  #: ZNCC window half length (all neighbour-line channels)
@@ -117,6 +130,7 @@ class Config:
     geometry: GeometryConfig = field(default_factory=GeometryConfig)
     lines: LinesConfig = field(default_factory=LinesConfig)
     rough: RoughConfig = field(default_factory=RoughConfig)
+    pyramid: PyramidConfig = field(default_factory=PyramidConfig)
     dense: DenseConfig = field(default_factory=DenseConfig)
     validity: ValidityConfig = field(default_factory=ValidityConfig)
     output: OutputConfig = field(default_factory=OutputConfig)
@@ -171,6 +185,12 @@ _LIMITS: dict[str, tuple[float | None, float | None, bool]] = {
     "sift.max_features": (1, None, False),
     "sift.max_ratio": (0, 1, True),
     "sift.max_image_size": (0, None, False),
+    "pyramid.min_size": (0, None, False),
+    "pyramid.radius": (0, 16, False),
+    "pyramid.fill_width": (0, 256, False),
+    "dense.min_zncc": (-1, 1, False),
+    "dense.single_min_zncc": (-1, 1, False),
+    "dense.reverse_max_size": (0, None, False),
     "geometry.min_inliers": (5, None, False),
     "geometry.ransac_max_error": (0, None, True),
     "geometry.min_tri_angle_deg": (0, 90, False),

@@ -23,8 +23,9 @@ ABLATIONS: dict[str, list[str]] = {
     "SeFM, all stages (default)": [],
     "paper only (1-D lines, strict S_v, no extras)": [
         "lines.neighbours=0", "dense.both_directions=false", "dense.open_ends=false", "dense.fill_max_gap=0",
-        "dense.subpixel=false", "validity.neighbour_tol_px=0", "validity.sv_max_unmatched=0",
+        "dense.subpixel=false", "validity.neighbour_tol_px=0", "validity.sv_max_unmatched=0", "pyramid.min_size=0",
     ],
+    "- coarse to fine (one level, SIFT depth band)": ["pyramid.min_size=0"],
     "- neighbour lines (1-D window)": ["lines.neighbours=0"],
     "- both directions": ["dense.both_directions=false"],
     "- open line ends": ["dense.open_ends=false"],

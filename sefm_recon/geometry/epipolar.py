@@ -17,7 +17,6 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
 
 logger = logging.getLogger(__name__)
@@ -291,61 +290,65 @@ def _fmt_epipole(e: np.ndarray) -> str:
     return f"({e[0] / e[2]:.1f}, {e[1] / e[2]:.1f})"
 
 
+def line_alphas(lp: LinePairs, K: np.ndarray, Rc: np.ndarray, which: int) -> np.ndarray:
+    """Angle from the baseline of the ray of every sample of image ``which``, flat (N,).
+
+    ``Rc`` rotates the camera's axes into camera 1's (identity for camera 1,
+    ``R.T`` for camera 2).
+    """
+    from .kernels import line_alphas as kernel
+
+    start, step, off = (lp.start1, lp.step1, lp.offset1) if which == 1 else (lp.start2, lp.step2, lp.offset2)
+    Minv = np.ascontiguousarray(Rc @ np.linalg.inv(K))
+    return kernel(np.ascontiguousarray(start, np.float64), np.ascontiguousarray(step, np.float64), off, Minv,
+                  np.ascontiguousarray(lp.basis, np.float64))
+
+
+def sample_line_channels(image: np.ndarray, lp: LinePairs, K: np.ndarray, Rc: np.ndarray, which: int,
+                         neighbours: int = 0, neighbour_step: float = 1.0) -> np.ndarray:
+    """Bilinear samples of every line of image ``which`` and of its neighbour lines.
+
+    Sample k of line l is the ray (phi_l, alpha_k); its neighbour ``o`` is the ray
+    (phi_l + o * neighbour_step * phi_step, alpha_k), o = -neighbours..neighbours.
+    Neighbours are aligned across lines in both images, so a surface point's
+    partner moves little from one to the next: stacking them gives the 1-D
+    matcher a small 2-D window.
+
+    Args:
+        image: (H, W) or (H, W, C); sampled as float32.
+        K, Rc: the camera's pinhole matrix, and the rotation from its axes into
+            camera 1's (identity for camera 1, ``R.T`` for camera 2).
+    Returns:
+        (N, (2 neighbours + 1) C) float32, neighbour-major then channel.
+    """
+    from .kernels import sample_line_channels as kernel
+
+    start, step, off = (lp.start1, lp.step1, lp.offset1) if which == 1 else (lp.start2, lp.step2, lp.offset2)
+    img = np.ascontiguousarray(image, np.float32)
+    if img.ndim == 2:
+        img = img[:, :, None]
+    offsets = np.arange(-neighbours, neighbours + 1) * neighbour_step * lp.phi_step
+    Minv = np.ascontiguousarray(Rc @ np.linalg.inv(K))  # homogeneous pixel -> camera-1-axes ray
+    M = np.ascontiguousarray(K @ Rc.T)  # and back
+    return kernel(img, np.ascontiguousarray(start, np.float64), np.ascontiguousarray(step, np.float64), off,
+                  np.ascontiguousarray(lp.phi, np.float64), offsets.astype(np.float64),
+                  np.ascontiguousarray(lp.basis, np.float64), Minv, M)
+
+
 def sample_lines(image: np.ndarray, start: np.ndarray, step: np.ndarray, count: np.ndarray) -> np.ndarray:
     """Bilinear samples of ``image`` along lines, flat (sum(count), C) float32.
 
     Args:
         image: (H, W) or (H, W, C), any dtype; sampled as float32.
     """
-    return sample_points(image, _expand(start, step, count))
+    from .kernels import sample_line_channels as kernel
 
-
-def rays_to_pixels(K: np.ndarray, Rc: np.ndarray, basis: np.ndarray, phi: np.ndarray, alpha: np.ndarray) -> np.ndarray:
-    """Pixels (N, 2) of the rays at half-plane angle ``phi`` and angle ``alpha`` from the baseline.
-
-    Inverse of :func:`ray_angles`; rays behind the camera give NaN.
-    """
-    from ..matching.kernels import rays_to_pixels as kernel
-
-    # Rows of M map a camera-1-axes ray to homogeneous pixels: x = K Rc^T d.
-    M = np.ascontiguousarray(K @ Rc.T)
-    return kernel(np.ascontiguousarray(phi, np.float64), np.ascontiguousarray(alpha, np.float64),
-                  np.ascontiguousarray(basis, np.float64), M)
-
-
-def neighbour_positions(lp: LinePairs, K: np.ndarray, Rc: np.ndarray, which: int, alpha: np.ndarray,
-                        offset: float) -> np.ndarray:
-    """Sample positions on the line ``offset`` line steps beside each line, at the same ray angles.
-
-    Sample k of line l is the ray (phi_l, alpha_k); its neighbour is the ray
-    (phi_l + offset * phi_step, alpha_k). Neighbours are aligned across lines in
-    both images, so a surface point's partner moves little from one to the next:
-    stacking them gives the 1-D matcher a small 2-D window.
-    """
-    count = lp.count1 if which == 1 else lp.count2
-    phi = np.repeat(lp.phi + offset * lp.phi_step, count)
-    uv = rays_to_pixels(K, Rc, lp.basis, phi, alpha)
-    bad = ~np.isfinite(uv).all(axis=1)
-    if bad.any():
-        centre = lp.all_points1() if which == 1 else lp.all_points2()
-        uv[bad] = centre[bad]
-    return uv
-
-
-def sample_points(image: np.ndarray, pts: np.ndarray) -> np.ndarray:
-    """Bilinear samples (N, C) float32 of ``image`` at COLMAP pixel positions ``pts`` (N, 2)."""
-    img = image.astype(np.float32, copy=False)
+    img = np.ascontiguousarray(image, np.float32)
     if img.ndim == 2:
         img = img[:, :, None]
-    total = len(pts)
-    if total == 0:
-        return np.zeros((0, img.shape[2]), np.float32)
-    p = pts.astype(np.float32) - 0.5  # COLMAP -> OpenCV centres
-    # remap's maps must stay below SHRT_MAX per side: fold the flat list into rows.
-    width = 4096
-    rows = -(-total // width)
-    pad = rows * width - total
-    mx = np.concatenate([p[:, 0], np.zeros(pad, np.float32)]).reshape(rows, width)
-    my = np.concatenate([p[:, 1], np.zeros(pad, np.float32)]).reshape(rows, width)
-    out = cv2.remap(img, mx, my, interpolation=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-    return out.reshape(rows * width, -1)[:total]
+    count = np.asarray(count, np.int64).reshape(-1)
+    off = np.concatenate([[0], np.cumsum(count)]).astype(np.int64)
+    L = len(count)
+    return kernel(img, np.ascontiguousarray(start, np.float64).reshape(L, 2),
+                  np.ascontiguousarray(step, np.float64).reshape(L, 2), off, np.zeros(L), np.zeros(1),
+                  np.eye(3), np.eye(3), np.eye(3))

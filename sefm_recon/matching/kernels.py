@@ -11,6 +11,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
+from ..geometry.kernels import pixel_ray
+
 # Back-pointer codes of the DP tables.
 _DIAG, _UP, _LEFT = 0, 1, 2
 
@@ -577,11 +579,13 @@ def grid_median_check(rows, cols, value, height, width, radius, tol, min_support
     cell wins); a point is kept when at least ``min_support`` other cells of
     its ``(2 radius + 1)^2`` window hold a value and the point is within
     ``tol`` of their median; a point with too few neighbours to judge is kept,
-    unless ``drop_isolated``.
+    unless ``drop_isolated``. The median test is done by counting, without
+    sorting: the median lies more than ``tol`` above the point exactly when
+    more than half of the neighbours do (an even count split in half is kept).
     Returns (keep (N,) bool, support (N,) int64).
     """
     n = rows.shape[0]
-    grid = np.full((height, width), np.nan)
+    grid = np.full((height, width), np.nan, np.float32)
     for k in range(n):
         r = rows[k]
         c = cols[k]
@@ -589,39 +593,31 @@ def grid_median_check(rows, cols, value, height, width, radius, tol, min_support
             grid[r, c] = value[k]
     keep = np.ones(n, np.bool_)
     support = np.zeros(n, np.int64)
-    size = (2 * radius + 1) * (2 * radius + 1)
-    chunk = 4096
-    nchunks = (n + chunk - 1) // chunk
-    for ci in prange(nchunks):
-        buf = np.empty(size, np.float64)  # one buffer per chunk, not per point
-        for k in range(ci * chunk, min(n, (ci + 1) * chunk)):
-            r = rows[k]
-            c = cols[k]
-            m = 0
-            for dr in range(-radius, radius + 1):
-                rr = r + dr
-                if rr < 0 or rr >= height:
+    for kk in prange(n):
+        k = np.int64(kk)
+        r = rows[k]
+        c = cols[k]
+        x = value[k]
+        m = 0
+        above = 0
+        below = 0
+        for rr in range(max(r - radius, 0), min(r + radius + 1, height)):
+            for cc in range(max(c - radius, 0), min(c + radius + 1, width)):
+                if rr == r and cc == c:
                     continue
-                for dc in range(-radius, radius + 1):
-                    cc = c + dc
-                    if cc < 0 or cc >= width or (dr == 0 and dc == 0):
-                        continue
-                    v = grid[rr, cc]
-                    if not np.isnan(v):
-                        # insertion sort: at most (2 radius + 1)^2 - 1 values
-                        p = m
-                        while p > 0 and buf[p - 1] > v:
-                            buf[p] = buf[p - 1]
-                            p -= 1
-                        buf[p] = v
-                        m += 1
-            support[k] = m
-            if m >= min_support:
-                med = buf[m // 2] if m % 2 == 1 else 0.5 * (buf[m // 2 - 1] + buf[m // 2])
-                if abs(value[k] - med) > tol:
-                    keep[k] = False
-            elif drop_isolated:
+                v = grid[rr, cc]
+                if not np.isnan(v):
+                    m += 1
+                    if v > x + tol:
+                        above += 1
+                    elif v < x - tol:
+                        below += 1
+        support[k] = m
+        if m >= min_support:
+            if 2 * above > m or 2 * below > m:
                 keep[k] = False
+        elif drop_isolated:
+            keep[k] = False
     return keep, support
 
 
@@ -658,6 +654,55 @@ def _zncc(a, i, b, jpos, half):
     vx = sxx - sx * sx / m
     vy = syy - sy * sy / m
     if vx <= 1e-6 * m or vy <= 1e-6 * m:
+        return -2.0
+    return (sxy - sx * sy / m) / np.sqrt(vx * vy)
+
+
+@njit(cache=True)
+def _zncc3(a, i, b, jpos, half):
+    """:func:`_zncc` at ``jpos - 1``, ``jpos`` and ``jpos + 1`` in one pass (shared window sums)."""
+    n1 = a.shape[0]
+    n2 = b.shape[0]
+    C = a.shape[1]
+    if i - half < 0 or i + half >= n1 or jpos - half - 1.0 < 0 or jpos + half + 1.0 > n2 - 1:
+        return -2.0, _zncc(a, i, b, jpos, half), -2.0
+    j0 = int(np.floor(jpos))
+    f = jpos - j0
+    g = 1.0 - f
+    m = (2 * half + 1) * C
+    sx = 0.0
+    sxx = 0.0
+    sl = sc = sr = 0.0  # sums of y at jpos - 1, jpos, jpos + 1
+    sll = scc = srr = 0.0
+    sxl = sxc = sxr = 0.0
+    for s in range(-half, half + 1):
+        jj = j0 + s
+        for c in range(C):
+            x = a[i + s, c]
+            yl = g * b[jj - 1, c] + f * b[jj, c]
+            yc = g * b[jj, c] + f * b[jj + 1, c]
+            yr = g * b[jj + 1, c] + f * b[jj + 2, c] if jj + 2 <= n2 - 1 else b[jj + 1, c]
+            sx += x
+            sxx += x * x
+            sl += yl
+            sc += yc
+            sr += yr
+            sll += yl * yl
+            scc += yc * yc
+            srr += yr * yr
+            sxl += x * yl
+            sxc += x * yc
+            sxr += x * yr
+    vx = sxx - sx * sx / m
+    if vx <= 1e-6 * m:
+        return -2.0, -2.0, -2.0
+    return _ncc(sxl, sx, sl, sll, vx, m), _ncc(sxc, sx, sc, scc, vx, m), _ncc(sxr, sx, sr, srr, vx, m)
+
+
+@njit(cache=True)
+def _ncc(sxy, sx, sy, syy, vx, m):
+    vy = syy - sy * sy / m
+    if vy <= 1e-6 * m:
         return -2.0
     return (sxy - sx * sy / m) / np.sqrt(vx * vy)
 
@@ -721,9 +766,12 @@ def refine_subpixel(I1, off1, I2, off2, j, half, max_shift):
     the window correlation over all channels (neighbour lines included) is
     smooth near its peak, and its parabola vertex is the sub-sample position.
     Shifts larger than ``max_shift`` samples (no clear peak) are not applied.
+    Returns the refined copy of ``j`` and the ZNCC at the DP's position
+    (NaN where unmatched, -2 where the window leaves a line or is flat).
     """
     L = off1.shape[0] - 1
     out = j.copy()
+    zncc = np.full(j.shape[0], np.nan, np.float32)
     for l in prange(L):
         s1 = off1[l]
         e1 = off1[l + 1]
@@ -733,9 +781,8 @@ def refine_subpixel(I1, off1, I2, off2, j, half, max_shift):
             jj = j[s1 + i]
             if np.isnan(jj):
                 continue
-            z0 = _zncc(a, i, b, jj, half)
-            zl = _zncc(a, i, b, jj - 1.0, half)
-            zr = _zncc(a, i, b, jj + 1.0, half)
+            zl, z0, zr = _zncc3(a, i, b, jj, half)
+            zncc[s1 + i] = z0
             if z0 <= -2.0 or zl <= -2.0 or zr <= -2.0:
                 continue
             den = zl - 2.0 * z0 + zr
@@ -744,36 +791,7 @@ def refine_subpixel(I1, off1, I2, off2, j, half, max_shift):
             off = 0.5 * (zl - zr) / den
             if abs(off) <= max_shift:
                 out[s1 + i] = jj + off
-    return out
-
-
-@njit(parallel=True, cache=True)
-def rays_to_pixels(phi, alpha, basis, M):
-    """Pixels (N, 2) of the rays (phi, alpha) (see geometry.epipolar.ray_angles); NaN behind the camera.
-
-    The ray is ``cos(alpha) b + sin(alpha) (cos(phi) e_a + sin(phi) e_b)`` with
-    ``basis = (b, e_a, e_b)`` (rows, camera-1 axes), projected by ``x = M d``.
-    """
-    n = phi.shape[0]
-    out = np.empty((n, 2))
-    for k in prange(n):
-        cp = np.cos(phi[k])
-        sp = np.sin(phi[k])
-        ca = np.cos(alpha[k])
-        sa = np.sin(alpha[k])
-        d0 = ca * basis[0, 0] + sa * (cp * basis[1, 0] + sp * basis[2, 0])
-        d1 = ca * basis[0, 1] + sa * (cp * basis[1, 1] + sp * basis[2, 1])
-        d2 = ca * basis[0, 2] + sa * (cp * basis[1, 2] + sp * basis[2, 2])
-        x = M[0, 0] * d0 + M[0, 1] * d1 + M[0, 2] * d2
-        y = M[1, 0] * d0 + M[1, 1] * d1 + M[1, 2] * d2
-        z = M[2, 0] * d0 + M[2, 1] * d1 + M[2, 2] * d2
-        if z > 0:
-            out[k, 0] = x / z
-            out[k, 1] = y / z
-        else:
-            out[k, 0] = np.nan
-            out[k, 1] = np.nan
-    return out
+    return out, zncc
 
 
 @njit(parallel=True, cache=True)
@@ -831,14 +849,141 @@ def ray_angles(Minv, basis, xy):
     phi = np.empty(n)
     alpha = np.empty(n)
     for k in prange(n):
-        x = xy[k, 0]
-        y = xy[k, 1]
-        r0 = Minv[0, 0] * x + Minv[0, 1] * y + Minv[0, 2]
-        r1 = Minv[1, 0] * x + Minv[1, 1] * y + Minv[1, 2]
-        r2 = Minv[2, 0] * x + Minv[2, 1] * y + Minv[2, 2]
+        r0, r1, r2 = pixel_ray(Minv, xy[k, 0], xy[k, 1])
         rb = r0 * basis[0, 0] + r1 * basis[0, 1] + r2 * basis[0, 2]
         ra = r0 * basis[1, 0] + r1 * basis[1, 1] + r2 * basis[1, 2]
         re = r0 * basis[2, 0] + r1 * basis[2, 1] + r2 * basis[2, 2]
         phi[k] = np.arctan2(re, ra)
         alpha[k] = np.arctan2(np.sqrt(ra * ra + re * re), rb)
     return phi, alpha
+
+
+@njit(parallel=True, cache=True)
+def fill_from_band(I1, off1, I2, off2, j, lo, hi, max_width, half, min_zncc):
+    """Match unmatched samples whose search band is narrow (a coarser level bounded it).
+
+    Where the band ``[lo, hi]`` of line-2 positions spans at most ``max_width``
+    samples, the partner is the band's best ZNCC over the window of ``2 half + 1``
+    samples and all channels, refined by a parabola, accepted when the
+    correlation reaches ``min_zncc``. Returns the filled copy of ``j`` and a
+    mask of the filled samples.
+    """
+    L = off1.shape[0] - 1
+    out = j.copy()
+    filled = np.zeros(j.shape[0], np.bool_)
+    for ll in prange(L):
+        l = np.int64(ll)
+        s1 = off1[l]
+        a = I1[s1:off1[l + 1]]
+        b = I2[off2[l]:off2[l + 1]]
+        for i in range(off1[l + 1] - s1):
+            if not np.isnan(j[s1 + i]) or hi[s1 + i] < lo[s1 + i] or hi[s1 + i] - lo[s1 + i] + 1 > max_width:
+                continue
+            best = -2.0
+            bj = 0
+            second = -2.0
+            for d in range(lo[s1 + i], hi[s1 + i] + 1):
+                z = _zncc(a, i, b, float(d), half)
+                if z > best:
+                    second = best
+                    best = z
+                    bj = d
+                elif z > second:
+                    second = z
+            if best < min_zncc:
+                continue
+            zl = _zncc(a, i, b, bj - 1.0, half)
+            zr = _zncc(a, i, b, bj + 1.0, half)
+            den = zl - 2.0 * best + zr
+            off = 0.0
+            if zl > -2.0 and zr > -2.0 and den < 0.0:
+                off = min(0.5, max(-0.5, 0.5 * (zl - zr) / den))
+            out[s1 + i] = bj + off
+            filled[s1 + i] = True
+    return out, filled
+
+
+@njit(parallel=True, cache=True)
+def line_matches_to_points(j, cost, max_cost, start1, step1, off1, start2, step2, Kinv1, Kinv2, Rt, c2, min_angle):
+    """Matched samples -> pixel pairs and midpoint-triangulated points, in line order.
+
+    Sample ``i`` of line ``l`` (flat index ``off1[l] + i``) with a finite partner
+    position ``j`` on line 2 and ``cost <= max_cost`` becomes the pair
+    ``start1[l] + i step1[l]``, ``start2[l] + j step2[l]``; see
+    :func:`sefm_recon.geometry.triangulate.triangulate` for the geometry.
+
+    Returns (compacted, M matches):
+        idx (M,) flat sample index; line (M,); uv1, uv2 (M, 2); X (M, 3) camera-1 frame;
+        dist (M,) distance from camera 1; valid (M,) bool: finite, in front of both
+        cameras, triangulation angle at least ``min_angle`` radians.
+    """
+    L = off1.shape[0] - 1
+    count = np.zeros(L + 1, np.int64)
+    for ll in prange(L):
+        l = np.int64(ll)
+        c = 0
+        for i in range(off1[l], off1[l + 1]):
+            if np.isfinite(j[i]) and cost[i] <= max_cost:
+                c += 1
+        count[l + 1] = c
+    pos = np.cumsum(count)
+    M = pos[L]
+    idx = np.empty(M, np.int64)
+    line = np.empty(M, np.int64)
+    uv1 = np.empty((M, 2))
+    uv2 = np.empty((M, 2))
+    X = np.empty((M, 3))
+    dist = np.empty(M)
+    valid = np.empty(M, np.bool_)
+    cos_max = np.cos(min_angle)
+    for ll in prange(L):
+        l = np.int64(ll)
+        p = pos[l]
+        for i in range(off1[l], off1[l + 1]):
+            if not (np.isfinite(j[i]) and cost[i] <= max_cost):
+                continue
+            k = i - off1[l]
+            x1 = start1[l, 0] + k * step1[l, 0]
+            y1 = start1[l, 1] + k * step1[l, 1]
+            x2 = start2[l, 0] + j[i] * step2[l, 0]
+            y2 = start2[l, 1] + j[i] * step2[l, 1]
+            a0 = Kinv1[0, 0] * x1 + Kinv1[0, 1] * y1 + Kinv1[0, 2]
+            a1 = Kinv1[1, 0] * x1 + Kinv1[1, 1] * y1 + Kinv1[1, 2]
+            a2 = Kinv1[2, 0] * x1 + Kinv1[2, 1] * y1 + Kinv1[2, 2]
+            q0 = Kinv2[0, 0] * x2 + Kinv2[0, 1] * y2 + Kinv2[0, 2]
+            q1 = Kinv2[1, 0] * x2 + Kinv2[1, 1] * y2 + Kinv2[1, 2]
+            q2 = Kinv2[2, 0] * x2 + Kinv2[2, 1] * y2 + Kinv2[2, 2]
+            b0 = Rt[0, 0] * q0 + Rt[0, 1] * q1 + Rt[0, 2] * q2
+            b1 = Rt[1, 0] * q0 + Rt[1, 1] * q1 + Rt[1, 2] * q2
+            b2 = Rt[2, 0] * q0 + Rt[2, 1] * q1 + Rt[2, 2] * q2
+            na = np.sqrt(a0 * a0 + a1 * a1 + a2 * a2)
+            nb = np.sqrt(b0 * b0 + b1 * b1 + b2 * b2)
+            a0 /= na
+            a1 /= na
+            a2 /= na
+            b0 /= nb
+            b1 /= nb
+            b2 /= nb
+            dot = a0 * b0 + a1 * b1 + a2 * b2
+            e = a0 * c2[0] + a1 * c2[1] + a2 * c2[2]
+            f = b0 * c2[0] + b1 * c2[1] + b2 * c2[2]
+            den = 1.0 - dot * dot
+            ok = den > 1e-12
+            s1 = (e - dot * f) / den if ok else np.nan
+            s2 = (dot * e - f) / den if ok else np.nan
+            X0 = 0.5 * (s1 * a0 + c2[0] + s2 * b0)
+            X1 = 0.5 * (s1 * a1 + c2[1] + s2 * b1)
+            X2 = 0.5 * (s1 * a2 + c2[2] + s2 * b2)
+            idx[p] = i
+            line[p] = l
+            uv1[p, 0] = x1
+            uv1[p, 1] = y1
+            uv2[p, 0] = x2
+            uv2[p, 1] = y2
+            X[p, 0] = X0
+            X[p, 1] = X1
+            X[p, 2] = X2
+            dist[p] = np.sqrt(X0 * X0 + X1 * X1 + X2 * X2)
+            valid[p] = ok and s1 > 0 and s2 > 0 and np.isfinite(dist[p]) and dot <= cos_max
+            p += 1
+    return idx, line, uv1, uv2, X, dist, valid

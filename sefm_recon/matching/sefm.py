@@ -6,6 +6,7 @@ positions (working frame) come out.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 from dataclasses import dataclass, field
@@ -15,7 +16,7 @@ import numpy as np
 
 from ..config import Config
 from ..errors import InputError
-from ..geometry.epipolar import LinePairs, line_pairs, neighbour_positions, ray_angles, sample_points
+from ..geometry.epipolar import LinePairs, line_alphas, line_pairs, sample_line_channels
 from ..geometry.triangulate import triangulate
 from ..geometry.two_view import TwoView
 from . import kernels
@@ -56,74 +57,33 @@ def depth_range(tv: TwoView, margin: float = 2.0) -> tuple[float, float]:
 
 def sample_alphas(lp: LinePairs, tv: TwoView) -> tuple[np.ndarray, np.ndarray]:
     """Angle from the baseline of every sample's ray, flat, for image 1 and image 2."""
-    _, a1 = ray_angles(tv.K1, np.eye(3), lp.basis, lp.all_points1())
-    _, a2 = ray_angles(tv.K2, tv.R.T, lp.basis, lp.all_points2())
-    return a1, a2
+    return line_alphas(lp, tv.K1, np.eye(3), 1), line_alphas(lp, tv.K2, tv.R.T, 2)
 
 
-def sample_channels(image: np.ndarray, lp: LinePairs, K: np.ndarray, Rc: np.ndarray, which: int,
-                    alpha: np.ndarray, neighbours: int, step: float) -> np.ndarray:
-    """(N, C * (2 * neighbours + 1)) samples of each line and its aligned neighbour lines."""
-    out = []
-    for k in range(-neighbours, neighbours + 1):
-        if k == 0:
-            pts = lp.all_points1() if which == 1 else lp.all_points2()
-        else:
-            pts = neighbour_positions(lp, K, Rc, which, alpha, k * step)
-        out.append(sample_points(image, pts))
-    return np.ascontiguousarray(np.concatenate(out, axis=1))
-
-
-def search_band(lp: LinePairs, tv: TwoView, depths: tuple[float, float], slack: int,
+def search_band(lp: LinePairs, tv: TwoView, depths, slack: int,
                 alphas: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
     """For each line-1 sample, the line-2 sample range holding points at the given depths.
 
-    A point at distance ``d`` along the ray of angle ``alpha1`` is seen from
-    camera 2 under ``alpha2 = atan2(d sin alpha1, d cos alpha1 - B)``; ``alpha2``
-    falls from pi (d = 0) to alpha1 (d = inf).
+    ``depths`` is ``(dmin, dmax)``: distances from camera 1, scalars for the
+    whole image or (N1,) arrays, one range per line-1 sample (from a coarser
+    level). Returns ``lo, hi`` (N1,) int64 positions on line 2, relative to its
+    start, widened by ``slack`` samples.
     """
+    from ..geometry.kernels import depth_band
+
     a1, a2 = alphas if alphas is not None else sample_alphas(lp, tv)
-    B = float(np.linalg.norm(tv.t))
-    dmin, dmax = depths
-    a2_hi = np.arctan2(dmin * np.sin(a1), dmin * np.cos(a1) - B)
-    if np.isfinite(dmax):
-        a2_lo = np.arctan2(dmax * np.sin(a1), dmax * np.cos(a1) - B)
-    else:
-        a2_lo = a1.copy()
-    off2 = lp.offset2
-    line1 = np.repeat(np.arange(len(lp)), lp.count1)
-    line2 = np.repeat(np.arange(len(lp)), lp.count2)
-    # alpha is in [0, pi] and increases along each line: offsetting by 8 per line
-    # makes one sorted key over all lines, so one searchsorted does every line.
-    key2 = line2 * 8.0 + a2
-    lo = np.searchsorted(key2, line1 * 8.0 + a2_lo, side="left") - off2[line1] - slack
-    hi = np.searchsorted(key2, line1 * 8.0 + a2_hi, side="right") - 1 - off2[line1] + slack
-    n2 = lp.count2[line1]
-    lo = np.clip(lo, 0, n2 - 1).astype(np.int64)
-    hi = np.clip(hi, -1, n2 - 1).astype(np.int64)
-    return lo, hi
+    n1 = len(a1)
+    dmin = np.broadcast_to(np.asarray(depths[0], np.float64), (n1,))
+    dmax = np.broadcast_to(np.asarray(depths[1], np.float64), (n1,))
+    return depth_band(a1, lp.offset1, a2, lp.offset2, np.ascontiguousarray(dmin), np.ascontiguousarray(dmax),
+                      float(np.linalg.norm(tv.t)), int(slack))
 
 
 def invert_band(lo: np.ndarray, hi: np.ndarray, off1: np.ndarray, off2: np.ndarray):
     """Band of line-1 positions for every line-2 sample, from the line-2 band of every line-1 sample."""
-    L = len(off1) - 1
-    count1, count2 = np.diff(off1), np.diff(off2)
-    line1 = np.repeat(np.arange(L), count1)
-    line2 = np.repeat(np.arange(L), count2)
-    big = 1 << 24
-    # Monotone envelopes (only ever widen the band): hi as a running max, lo as a
-    # running min from the end of each line.
-    hi_m = hi.astype(np.int64).copy()
-    lo_m = lo.astype(np.int64).copy()
-    for l in range(L):  # L ~ 1e3 lines: vectorised per line, cheap
-        a, b = off1[l], off1[l + 1]
-        hi_m[a:b] = np.maximum.accumulate(hi_m[a:b])
-        lo_m[a:b] = np.minimum.accumulate(lo_m[a:b][::-1])[::-1]
-    k2 = np.arange(len(line2)) - off2[line2]
-    first = np.searchsorted(line1 * big + hi_m, line2 * big + k2, side="left") - off1[line2]
-    last = np.searchsorted(line1 * big + lo_m, line2 * big + k2, side="right") - 1 - off1[line2]
-    n1 = count1[line2]
-    return np.clip(first, 0, n1 - 1).astype(np.int64), np.clip(last, -1, n1 - 1).astype(np.int64)
+    from ..geometry.kernels import invert_band as kernel
+
+    return kernel(np.ascontiguousarray(lo, np.int64), np.ascontiguousarray(hi, np.int64), off1, off2)
 
 
 def consistent(j12: np.ndarray, i21: np.ndarray, off1, off2, count2, tol: float) -> np.ndarray:
@@ -138,6 +98,65 @@ def consistent(j12: np.ndarray, i21: np.ndarray, off1, off2, count2, tol: float)
     ok &= np.isfinite(back) & (np.abs(back - k1) <= tol)
     out[ok] = j12[ok]
     return out
+
+
+def _half(image: np.ndarray) -> tuple[np.ndarray, float, float]:
+    """Image at half size (area average) and the x, y scale factors (COLMAP pixels scale by them)."""
+    h, w = image.shape[:2]
+    small = cv2.resize(image, ((w + 1) // 2, (h + 1) // 2), interpolation=cv2.INTER_AREA)
+    return small, small.shape[1] / w, small.shape[0] / h
+
+
+def coarse_level(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config) -> tuple | None:
+    """Match the pair at half size (itself coarse to fine when still large).
+
+    Returns ``(matches, (sx, sy), shape)`` of the half-size image 1, or None
+    when the images are small enough to match directly (``pyramid.min_size``).
+    """
+    p = cfg.pyramid
+    longest = max(img1.shape[:2] + img2.shape[:2])
+    if p.min_size <= 0 or longest <= p.min_size or longest < 512:
+        return None
+    c1, sx1, sy1 = _half(img1)
+    c2, sx2, sy2 = _half(img2)
+    S1 = np.diag([sx1, sy1, 1.0])
+    S2 = np.diag([sx2, sy2, 1.0])
+    tvc = dataclasses.replace(tv, K1=S1 @ tv.K1, K2=S2 @ tv.K2, kp1=tv.kp1 * [sx1, sy1], kp2=tv.kp2 * [sx2, sy2])
+    ccfg = cfg
+    if not p.coarse_subpixel:  # the coarse level only bounds the search: whole samples do
+        ccfg = dataclasses.replace(cfg, dense=dataclasses.replace(cfg.dense, subpixel=False, fill_max_gap=0))
+    try:
+        dm = match_pair(c1, c2, tvc, ccfg)
+    except InputError:
+        return None
+    return dm, (sx1, sy1), c1.shape[:2]
+
+
+def coarse_depth_bounds(lp: LinePairs, coarse: tuple, radius: int, depths: tuple[float, float]):
+    """Distance range (dmin, dmax) per line-1 sample from the coarse level's matches.
+
+    Each sample's range is the smallest and largest distance the coarse level
+    found within ``radius`` coarse pixels of it (so an occlusion edge keeps
+    both sides, and an isolated coarse mismatch only widens it); samples
+    without a coarse match nearby keep the global ``depths``.
+    """
+    from ..geometry.kernels import lookup_depth_bounds
+
+    dm, (sx, sy), shape = coarse
+    gmin = np.full(shape, np.inf, np.float32)
+    gmax = np.full(shape, -np.inf, np.float32)
+    if len(dm.uv1):
+        cols = np.clip(np.floor(dm.uv1[:, 0]).astype(np.int64), 0, shape[1] - 1)
+        rows = np.clip(np.floor(dm.uv1[:, 1]).astype(np.int64), 0, shape[0] - 1)
+        dist = np.linalg.norm(dm.xyz, axis=1).astype(np.float32)
+        np.minimum.at(gmin, (rows, cols), dist)
+        np.maximum.at(gmax, (rows, cols), dist)
+    if radius > 0:
+        kernel = np.ones((2 * radius + 1, 2 * radius + 1), np.uint8)
+        gmin = cv2.erode(gmin, kernel, borderType=cv2.BORDER_REPLICATE)
+        gmax = cv2.dilate(gmax, kernel, borderType=cv2.BORDER_REPLICATE)
+    return lookup_depth_bounds(np.ascontiguousarray(lp.start1, np.float64), np.ascontiguousarray(lp.step1, np.float64),
+                               lp.offset1, float(sx), float(sy), gmin, gmax, float(depths[0]), float(depths[1]))
 
 
 def _match_direction(Ia, offa, Ib, offb, lo, hi, cfg: Config, bar=None):
@@ -184,6 +203,12 @@ def match_pair(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config, pro
     """
     timings = {}
     t0 = time.perf_counter()
+    coarse = coarse_level(img1, img2, tv, cfg)
+    if coarse is not None:
+        timings["coarse"] = time.perf_counter() - t0
+        logger.info("coarse level %dx%d: %d matches in %.2f s", coarse[2][1], coarse[2][0], len(coarse[0].uv1),
+                    timings["coarse"])
+    t0 = time.perf_counter()
     size1 = (img1.shape[1], img1.shape[0])
     size2 = (img2.shape[1], img2.shape[0])
     lp = line_pairs(tv.K1, tv.K2, tv.R, tv.t, size1, size2, cfg.lines.line_spacing,
@@ -194,24 +219,31 @@ def match_pair(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config, pro
     f2 = _prepare(img2, cfg.lines.blur_sigma, cfg.lines.color)
     alphas = sample_alphas(lp, tv)
     nb, nstep = cfg.lines.neighbours, cfg.lines.neighbour_step
-    I1 = sample_channels(f1, lp, tv.K1, np.eye(3), 1, alphas[0], nb, nstep)
-    I2 = sample_channels(f2, lp, tv.K2, tv.R.T, 2, alphas[1], nb, nstep)
+    I1 = sample_line_channels(f1, lp, tv.K1, np.eye(3), 1, nb, nstep)
+    I2 = sample_line_channels(f2, lp, tv.K2, tv.R.T, 2, nb, nstep)
     depths = depth_range(tv, cfg.geometry.depth_margin)
+    logger.info("search depths %.3g .. %.3g (baseline %.3g)", depths[0], depths[1], np.linalg.norm(tv.t))
+    if coarse is not None:
+        depths = coarse_depth_bounds(lp, coarse, cfg.pyramid.radius, depths)
     lo, hi = search_band(lp, tv, depths, cfg.rough.band_slack, alphas)
     timings["line_pairs"] = time.perf_counter() - t0
-    logger.info("search depths %.3g .. %.3g (baseline %.3g)", depths[0], depths[1], np.linalg.norm(tv.t))
 
     t0 = time.perf_counter()
     off1, off2 = lp.offset1, lp.offset2
+    # On large images a ZNCC test does most of the reverse pass's work at half
+    # the cost (measured: README, speed).
+    d = cfg.dense
+    both = d.both_directions and (d.reverse_max_size <= 0 or max(size1 + size2) <= d.reverse_max_size)
+    min_zncc = d.min_zncc if both or not d.both_directions else d.single_min_zncc
     bar = None
     if progress:
         from tqdm import tqdm
 
-        bar = tqdm(total=len(lp) * (2 if cfg.dense.both_directions else 1), desc="matching line pairs",
+        bar = tqdm(total=len(lp) * (2 if both else 1), desc="matching line pairs",
                    unit="line", leave=False)
     j, cost, anchor, stats = _match_direction(I1, off1, I2, off2, lo, hi, cfg, bar)
     n_dense = int(np.isfinite(j).sum())
-    if cfg.dense.both_directions:
+    if both:
         lo21, hi21 = invert_band(lo, hi, off1, off2)
         i21, _, _, _ = _match_direction(I2, off2, I1, off1, lo21, hi21, cfg, bar)
         j = consistent(j, i21, off1, off2, lp.count2, cfg.dense.consistency_px)
@@ -219,25 +251,28 @@ def match_pair(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config, pro
         j, filled = kernels.fill_gaps(I1, off1, I2, off2, j, cfg.dense.fill_max_gap, cfg.dense.fill_radius,
                                       cfg.dense.fill_half_window, cfg.dense.fill_min_zncc)
         cost[filled] = 0.0
+    if coarse is not None and cfg.pyramid.fill_width > 0:
+        j, filled = kernels.fill_from_band(I1, off1, I2, off2, j, lo, hi, cfg.pyramid.fill_width,
+                                           cfg.dense.fill_half_window, cfg.dense.fill_min_zncc)
+        cost[filled] = 0.0
     if cfg.dense.subpixel:
         for _ in range(cfg.dense.subpixel_iterations):
-            j = kernels.refine_subpixel(I1, off1, I2, off2, j, cfg.dense.subpixel_half_window, 1.0)
+            j, zncc = kernels.refine_subpixel(I1, off1, I2, off2, j, cfg.dense.subpixel_half_window, 1.0)
+        # A partner whose window does not correlate is most often a wrong one.
+        if min_zncc > -1.0:
+            j[zncc < min_zncc] = np.nan
     if bar is not None:
         bar.close()
     timings["matching"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    line1 = np.repeat(np.arange(len(lp)), lp.count1)
-    k1 = np.arange(len(I1)) - off1[line1]
     dense = np.isfinite(j)
-    ok = dense & (cost <= cfg.validity.max_cost)
-    idx = np.flatnonzero(ok)
-    line = line1[idx]
-    uv1 = lp.points1(line, k1[idx].astype(np.float64))
-    uv2 = lp.points2(line, j[idx])
-    X, valid, angle = triangulate(tv.K1, tv.K2, tv.R, tv.t, uv1, uv2)
-    valid &= angle >= np.radians(cfg.validity.min_tri_angle_deg)
-    dist = np.linalg.norm(X, axis=1)
+    Rt = np.ascontiguousarray(tv.R.T)
+    idx, line, uv1, uv2, X, dist, valid = kernels.line_matches_to_points(
+        j, cost, cfg.validity.max_cost, np.ascontiguousarray(lp.start1, np.float64),
+        np.ascontiguousarray(lp.step1, np.float64), off1, np.ascontiguousarray(lp.start2, np.float64),
+        np.ascontiguousarray(lp.step2, np.float64), np.linalg.inv(tv.K1), np.linalg.inv(tv.K2), Rt,
+        -Rt @ np.asarray(tv.t, np.float64), np.radians(cfg.validity.min_tri_angle_deg))
     keep = np.zeros(len(idx), bool)
     vi = np.flatnonzero(valid)
     keep[vi] = depth_continuity(dist[vi], line[vi], cfg.validity.sp_depth_jump, cfg.validity.sp_min_run)

@@ -1,0 +1,247 @@
+"""numba kernels for sampling epipolar line pairs: one pass per line, both cores.
+
+Sample ``k`` of line ``l`` lies at ``start[l] + k * step[l]`` (COLMAP pixels);
+line ``l``'s samples are stored flat at ``off[l]:off[l + 1]``. Lines are
+independent, so every kernel runs ``prange`` over lines and writes only its
+own slice.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit, prange
+
+
+@njit(cache=True)
+def pixel_ray(Minv, x, y):
+    """Ray ``Minv @ (x, y, 1)`` of a pixel, unnormalised (camera-1 axes when ``Minv = Rc K^-1``)."""
+    r0 = Minv[0, 0] * x + Minv[0, 1] * y + Minv[0, 2]
+    r1 = Minv[1, 0] * x + Minv[1, 1] * y + Minv[1, 2]
+    r2 = Minv[2, 0] * x + Minv[2, 1] * y + Minv[2, 2]
+    return r0, r1, r2
+
+
+@njit(parallel=True, cache=True)
+def line_alphas(start, step, off, Minv, basis):
+    """Angle from the baseline of every sample's viewing ray, (N,) float64.
+
+    ``Minv`` (3, 3) maps homogeneous pixels to rays in camera-1 axes (``Rc K^-1``);
+    ``basis`` rows are ``(b, e_a, e_b)``.
+    """
+    L = off.shape[0] - 1
+    alpha = np.empty(off[L])
+    for ll in prange(L):
+        l = np.int64(ll)
+        for k in range(off[l + 1] - off[l]):
+            r0, r1, r2 = pixel_ray(Minv, start[l, 0] + k * step[l, 0], start[l, 1] + k * step[l, 1])
+            rb = r0 * basis[0, 0] + r1 * basis[0, 1] + r2 * basis[0, 2]
+            ra = r0 * basis[1, 0] + r1 * basis[1, 1] + r2 * basis[1, 2]
+            re = r0 * basis[2, 0] + r1 * basis[2, 1] + r2 * basis[2, 2]
+            alpha[off[l] + k] = np.arctan2(np.sqrt(ra * ra + re * re), rb)
+    return alpha
+
+
+@njit(cache=True)
+def _bilinear(img, x, y, out, row, col0):
+    """Bilinear sample of img (H, W, C) at COLMAP position (x, y), border replicated."""
+    H, W, C = img.shape
+    px = x - 0.5
+    py = y - 0.5
+    x0 = int(np.floor(px))
+    y0 = int(np.floor(py))
+    fx = px - x0
+    fy = py - y0
+    xa = min(max(x0, 0), W - 1)
+    xb = min(max(x0 + 1, 0), W - 1)
+    ya = min(max(y0, 0), H - 1)
+    yb = min(max(y0 + 1, 0), H - 1)
+    for c in range(C):
+        top = (1.0 - fx) * img[ya, xa, c] + fx * img[ya, xb, c]
+        bot = (1.0 - fx) * img[yb, xa, c] + fx * img[yb, xb, c]
+        out[row, col0 + c] = (1.0 - fy) * top + fy * bot
+
+
+@njit(parallel=True, cache=True)
+def sample_line_channels(img, start, step, off, phi, offsets, basis, Minv, M):
+    """Bilinear samples of each line and of its neighbour lines at the same ray angles.
+
+    Sample ``k`` of line ``l`` is the ray ``(phi[l], alpha_k)``; its neighbour
+    ``o`` is the ray ``(phi[l] + offsets[o], alpha_k)``: the same components along
+    and normal to the baseline ``b``, the normal one turned about ``b``.
+    ``Minv`` (``Rc K^-1``) maps pixels to rays in camera-1 axes, ``M``
+    (``K Rc^T``) back. An offset of 0 is the line itself; a neighbour ray behind
+    the camera takes the line's own position.
+
+    Args:
+        img: (H, W, C) float32.
+        offsets: (O,) half-plane angle offsets, radians.
+    Returns:
+        (N, O * C) float32, neighbour-major then channel.
+    """
+    L = off.shape[0] - 1
+    C = img.shape[2]
+    O = offsets.shape[0]
+    out = np.empty((off[L], O * C), np.float32)
+    for ll in prange(L):
+        l = np.int64(ll)
+        base = off[l]
+        n = off[l + 1] - base
+        # Per neighbour: the unit direction normal to b in its half-plane (camera-1 axes).
+        m = np.empty((O, 3))
+        for o in range(O):
+            cp = np.cos(phi[l] + offsets[o])
+            sp = np.sin(phi[l] + offsets[o])
+            for i in range(3):
+                m[o, i] = cp * basis[1, i] + sp * basis[2, i]
+        for k in range(n):
+            x0 = start[l, 0] + k * step[l, 0]
+            y0 = start[l, 1] + k * step[l, 1]
+            r0, r1, r2 = pixel_ray(Minv, x0, y0)
+            rb = r0 * basis[0, 0] + r1 * basis[0, 1] + r2 * basis[0, 2]
+            rp = np.sqrt(max(0.0, r0 * r0 + r1 * r1 + r2 * r2 - rb * rb))  # length normal to b
+            for o in range(O):
+                if offsets[o] == 0.0:
+                    _bilinear(img, x0, y0, out, base + k, o * C)
+                    continue
+                d0 = rb * basis[0, 0] + rp * m[o, 0]
+                d1 = rb * basis[0, 1] + rp * m[o, 1]
+                d2 = rb * basis[0, 2] + rp * m[o, 2]
+                z = M[2, 0] * d0 + M[2, 1] * d1 + M[2, 2] * d2
+                if z > 0:
+                    _bilinear(img, (M[0, 0] * d0 + M[0, 1] * d1 + M[0, 2] * d2) / z,
+                              (M[1, 0] * d0 + M[1, 1] * d1 + M[1, 2] * d2) / z, out, base + k, o * C)
+                else:
+                    _bilinear(img, x0, y0, out, base + k, o * C)
+    return out
+
+
+@njit(cache=True)
+def _first_at_least(a, s, e, v):
+    """First index i in [s, e) with a[i] >= v (a sorted), e if none."""
+    while s < e:
+        m = (s + e) >> 1
+        if a[m] < v:
+            s = m + 1
+        else:
+            e = m
+    return s
+
+
+@njit(parallel=True, cache=True)
+def depth_band(a1, off1, a2, off2, dmin, dmax, baseline, slack):
+    """For each line-1 sample, the line-2 sample range holding points at distances [dmin, dmax].
+
+    A point at distance ``d`` along the ray of angle ``a1`` is seen from camera 2
+    under ``a2 = atan2(d sin a1, d cos a1 - B)``, falling from pi (d = 0) to
+    ``a1`` (d = inf); ``a2`` increases along each line 2.
+
+    Args:
+        a1, a2: (N1,), (N2,) sample ray angles.
+        dmin, dmax: (N1,) distance range per sample (``dmax`` may be inf).
+    Returns:
+        lo, hi (N1,) int64 positions on line 2 relative to its start, widened
+        by ``slack`` samples and clipped (``hi < lo`` when empty).
+    """
+    L = off1.shape[0] - 1
+    N1 = a1.shape[0]
+    lo = np.empty(N1, np.int64)
+    hi = np.empty(N1, np.int64)
+    for ll in prange(L):
+        l = np.int64(ll)
+        s2 = off2[l]
+        e2 = off2[l + 1]
+        n2 = e2 - s2
+        for i in range(off1[l], off1[l + 1]):
+            sa = np.sin(a1[i])
+            ca = np.cos(a1[i])
+            hi_a = np.arctan2(dmin[i] * sa, dmin[i] * ca - baseline)
+            if np.isfinite(dmax[i]):
+                lo_a = np.arctan2(dmax[i] * sa, dmax[i] * ca - baseline)
+            else:
+                lo_a = a1[i]
+            a = _first_at_least(a2, s2, e2, lo_a) - s2 - slack
+            # last index with a2 <= hi_a: first index with a2 > hi_a, minus one
+            s = s2
+            e = e2
+            while s < e:
+                m = (s + e) >> 1
+                if a2[m] <= hi_a:
+                    s = m + 1
+                else:
+                    e = m
+            b = s - 1 - s2 + slack
+            lo[i] = min(max(a, 0), n2 - 1)
+            hi[i] = min(max(b, -1), n2 - 1)
+    return lo, hi
+
+
+@njit(parallel=True, cache=True)
+def invert_band(lo, hi, off1, off2):
+    """Band of line-1 positions for every line-2 sample, from the line-2 band of every line-1 sample.
+
+    The bands are first made monotone (only ever widened): ``hi`` as a running
+    maximum along the line, ``lo`` as a running minimum from its end. Line-2
+    sample ``k`` may then match line-1 samples ``first..last``: the first
+    whose ``hi`` reaches ``k`` and the last whose ``lo`` does not pass it.
+    """
+    L = off1.shape[0] - 1
+    N2 = off2[L]
+    first = np.empty(N2, np.int64)
+    last = np.empty(N2, np.int64)
+    for ll in prange(L):
+        l = np.int64(ll)
+        s1 = off1[l]
+        n1 = off1[l + 1] - s1
+        s2 = off2[l]
+        n2 = off2[l + 1] - s2
+        hi_m = np.empty(n1, np.int64)
+        lo_m = np.empty(n1, np.int64)
+        run = np.int64(-(1 << 40))
+        for i in range(n1):
+            run = max(run, hi[s1 + i])
+            hi_m[i] = run
+        run = np.int64(1 << 40)
+        for i in range(n1 - 1, -1, -1):
+            run = min(run, lo[s1 + i])
+            lo_m[i] = run
+        p = 0  # first i with hi_m[i] >= k
+        q = 0  # first i with lo_m[i] > k
+        for k in range(n2):
+            while p < n1 and hi_m[p] < k:
+                p += 1
+            while q < n1 and lo_m[q] <= k:
+                q += 1
+            first[s2 + k] = min(max(p, 0), n1 - 1)
+            last[s2 + k] = min(max(q - 1, -1), n1 - 1)
+    return first, last
+
+
+@njit(parallel=True, cache=True)
+def lookup_depth_bounds(start, step, off, sx, sy, gmin, gmax, dmin0, dmax0):
+    """Per-sample distance range from a coarser level's min/max depth grids.
+
+    Sample ``k`` of line ``l`` (at ``start[l] + k * step[l]``, COLMAP pixels)
+    reads cell ``floor(x * sx), floor(y * sy)`` of ``gmin``/``gmax`` (H', W');
+    where the coarse level matched nothing nearby (``gmin`` inf), the global
+    range ``dmin0, dmax0``.
+    Returns dmin, dmax (N,) float64.
+    """
+    L = off.shape[0] - 1
+    H, W = gmin.shape
+    dmin = np.empty(off[L])
+    dmax = np.empty(off[L])
+    for ll in prange(L):
+        l = np.int64(ll)
+        for k in range(off[l + 1] - off[l]):
+            c = int(np.floor((start[l, 0] + k * step[l, 0]) * sx))
+            r = int(np.floor((start[l, 1] + k * step[l, 1]) * sy))
+            c = min(max(c, 0), W - 1)
+            r = min(max(r, 0), H - 1)
+            i = off[l] + k
+            if np.isfinite(gmin[r, c]):
+                dmin[i] = gmin[r, c]
+                dmax[i] = gmax[r, c]
+            else:
+                dmin[i] = dmin0
+                dmax[i] = dmax0
+    return dmin, dmax

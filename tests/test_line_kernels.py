@@ -1,0 +1,146 @@
+"""The per-line numba kernels against plain numpy references, and the coarse-to-fine band."""
+
+import numpy as np
+import pytest
+
+from sefm_recon.geometry import kernels as gk
+from sefm_recon.geometry.epipolar import line_alphas, line_pairs, ray_angles, sample_line_channels
+from sefm_recon.matching import kernels as mk
+from sefm_recon.matching.sefm import coarse_depth_bounds, invert_band, search_band
+from sefm_recon.geometry.two_view import TwoView
+
+from .conftest import rot_y
+
+K = np.array([[500.0, 0, 320], [0, 500, 240], [0, 0, 1]])
+SIZE = (640, 480)
+
+
+def _lp():
+    R = rot_y(-0.15)
+    t = -R @ np.array([1.0, 0.1, 0.2])
+    return R, t, line_pairs(K, K, R, t, SIZE, SIZE)
+
+
+def test_line_alphas_match_ray_angles():
+    R, t, lp = _lp()
+    for which, Rc, pts in ((1, np.eye(3), lp.all_points1()), (2, R.T, lp.all_points2())):
+        _, ref = ray_angles(K, Rc, lp.basis, pts)
+        np.testing.assert_allclose(line_alphas(lp, K, Rc, which), ref, atol=1e-12)
+
+
+def test_neighbour_channels_sample_the_neighbour_lines_at_the_same_ray_angle():
+    R, t, lp = _lp()
+    # A linear image: sampled value = a known function of the position, so the
+    # samples tell where the kernel looked.
+    yy, xx = np.mgrid[0:SIZE[1], 0:SIZE[0]].astype(np.float32)
+    img = np.stack([xx + 0.5, yy + 0.5], axis=2)  # value = COLMAP position of the pixel centre
+    I = sample_line_channels(img, lp, K, np.eye(3), 1, neighbours=1, neighbour_step=1.0)
+    assert I.shape == (lp.offset1[-1], 6)
+    centre = lp.all_points1()
+    inside = (centre[:, 0] > 3) & (centre[:, 0] < SIZE[0] - 3) & (centre[:, 1] > 3) & (centre[:, 1] < SIZE[1] - 3)
+    np.testing.assert_allclose(I[inside, 2:4], centre[inside], atol=1e-3)
+    phi_c, a_c = ray_angles(K, np.eye(3), lp.basis, centre[inside])
+    for o, cols in ((-1, slice(0, 2)), (1, slice(4, 6))):
+        phi, a = ray_angles(K, np.eye(3), lp.basis, I[inside, cols].astype(np.float64))
+        d = (phi - phi_c - o * lp.phi_step + np.pi) % (2 * np.pi) - np.pi
+        assert np.abs(d).max() < 1e-3 * lp.phi_step + 1e-6  # the neighbour half-plane...
+        np.testing.assert_allclose(a, a_c, atol=1e-5)  # ...at the same angle from the baseline
+        # ...about one line step away
+        step = np.linalg.norm(I[inside, cols] - centre[inside], axis=1)
+        assert 0.2 < np.median(step) < 1.5
+
+
+def _band_reference(a1, off1, a2, off2, dmin, dmax, B, slack):
+    lo = np.empty(len(a1), np.int64)
+    hi = np.empty(len(a1), np.int64)
+    for l in range(len(off1) - 1):
+        s1, e1, s2, e2 = off1[l], off1[l + 1], off2[l], off2[l + 1]
+        x2 = a2[s2:e2]
+        for i in range(s1, e1):
+            a_hi = np.arctan2(dmin[i] * np.sin(a1[i]), dmin[i] * np.cos(a1[i]) - B)
+            a_lo = np.arctan2(dmax[i] * np.sin(a1[i]), dmax[i] * np.cos(a1[i]) - B) if np.isfinite(dmax[i]) else a1[i]
+            lo[i] = np.clip(np.searchsorted(x2, a_lo, "left") - slack, 0, e2 - s2 - 1)
+            hi[i] = np.clip(np.searchsorted(x2, a_hi, "right") - 1 + slack, -1, e2 - s2 - 1)
+    return lo, hi
+
+
+def test_depth_band_and_its_inverse_match_references():
+    R, t, lp = _lp()
+    tv = TwoView(K, K, R, t)
+    a1, a2 = line_alphas(lp, K, np.eye(3), 1), line_alphas(lp, K, R.T, 2)
+    rng = np.random.default_rng(0)
+    dmin = rng.uniform(2, 4, len(a1))
+    dmax = np.where(rng.random(len(a1)) < 0.2, np.inf, dmin * rng.uniform(1.0, 3.0, len(a1)))
+    lo, hi = search_band(lp, tv, (dmin, dmax), 3, (a1, a2))
+    rlo, rhi = _band_reference(a1, lp.offset1, a2, lp.offset2, dmin, dmax, np.linalg.norm(t), 3)
+    np.testing.assert_array_equal(lo, rlo)
+    np.testing.assert_array_equal(hi, rhi)
+    # The inverse band: line-2 sample k may match line-1 sample i iff i's
+    # (monotone-widened) band holds k.
+    first, last = invert_band(lo, hi, lp.offset1, lp.offset2)
+    for l in (0, len(lp) // 2, len(lp) - 1):
+        s1, e1, s2, e2 = lp.offset1[l], lp.offset1[l + 1], lp.offset2[l], lp.offset2[l + 1]
+        hm = np.maximum.accumulate(hi[s1:e1])
+        lm = np.minimum.accumulate(lo[s1:e1][::-1])[::-1]
+        for k in range(e2 - s2):
+            ok = np.flatnonzero((lm <= k) & (hm >= k))
+            if len(ok):
+                assert first[s2 + k] == ok[0] and last[s2 + k] == ok[-1]
+
+
+def test_coarse_bounds_follow_the_coarse_depths_and_fall_back_elsewhere():
+    R, t, lp = _lp()
+
+    class Coarse:  # the two fields coarse_depth_bounds reads
+        uv1 = np.array([[100.25, 100.25], [101.25, 100.25]])
+        xyz = np.array([[0.0, 0.0, 3.0], [0.0, 0.0, 5.0]])
+
+    shape = (SIZE[1] // 2, SIZE[0] // 2)
+    dmin, dmax = coarse_depth_bounds(lp, (Coarse, (0.5, 0.5), shape), 1, (1.0, np.inf))
+    pts = lp.all_points1() * 0.5
+    near = (np.abs(np.floor(pts[:, 0]) - 100.5) <= 1.5) & (np.abs(np.floor(pts[:, 1]) - 100) <= 1)
+    assert near.any() and (~near).any()
+    # within a coarse pixel of both coarse matches: their range; far away: the global one
+    both = (np.floor(pts[:, 0]) >= 100) & (np.floor(pts[:, 0]) <= 101) & (np.abs(np.floor(pts[:, 1]) - 100) <= 1)
+    np.testing.assert_allclose(dmin[both], 3.0)
+    np.testing.assert_allclose(dmax[both], 5.0)
+    assert np.all(dmin[~near] == 1.0) and np.all(np.isinf(dmax[~near]))
+
+
+def test_two_d_check_drops_a_point_the_majority_disagrees_with():
+    rows, cols = np.mgrid[0:5, 0:5]
+    rows, cols = rows.ravel().astype(np.int64), cols.ravel().astype(np.int64)
+    value = np.ones(25)
+    value[12] = 5.0  # the centre disagrees with all 24 neighbours
+    value[0] = 1.5  # a corner within tol of its neighbours
+    keep, support = mk.grid_median_check(rows, cols, value, 5, 5, 2, 1.0, 6, False)
+    assert not keep[12] and keep[0] and keep[1:12].all()
+    assert support[12] == 24 and support[0] == 8
+
+
+@pytest.mark.parametrize("jpos", [20.0, 20.3, 35.75])
+def test_three_zncc_in_one_pass_equal_three_single_ones(jpos):
+    rng = np.random.default_rng(1)
+    a = rng.normal(size=(60, 3)).astype(np.float32)
+    b = rng.normal(size=(60, 3)).astype(np.float32)
+    got = mk._zncc3(a, 25, b, jpos, 5)
+    want = [mk._zncc(a, 25, b, jpos + d, 5) for d in (-1.0, 0.0, 1.0)]
+    np.testing.assert_allclose(got, want, atol=1e-9)
+
+
+def test_fill_from_band_finds_the_shift_inside_a_narrow_band():
+    rng = np.random.default_rng(2)
+    n = 200
+    b = np.repeat(rng.normal(size=(n + 10, 1)), 3, axis=1).astype(np.float32)
+    a = b[4:n + 4].copy()  # line-1 sample i is line-2 sample i + 4
+    off = np.array([0, n], np.int64)
+    off2 = np.array([0, n + 10], np.int64)
+    j = np.full(n, np.nan)
+    lo = np.arange(n, dtype=np.int64) + 1
+    hi = lo + 8
+    hi[:20] = lo[:20] + 40  # too wide: left alone
+    out, filled = mk.fill_from_band(a, off, b, off2, j, lo, hi, 12, 3, 0.9)
+    inner = np.arange(20, n - 10)
+    assert filled[inner].all() and not filled[:20].any()
+    # the best whole shift, then a parabola (white noise has no smooth peak: within half a sample)
+    np.testing.assert_array_equal(np.rint(out[inner]), inner + 4.0)
