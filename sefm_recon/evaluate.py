@@ -42,16 +42,9 @@ OCCLUSION_REL = 0.01  # relative depth tolerance of the occlusion test
 
 def _corners(depth: np.ndarray, uv: np.ndarray):
     """Indices and weights of the 2x2 pixel centres around COLMAP positions ``uv``."""
-    H, W = depth.shape
-    x = np.clip(uv[:, 0] - 0.5, 0.0, W - 1.0)
-    y = np.clip(uv[:, 1] - 0.5, 0.0, H - 1.0)
-    j0 = np.minimum(np.floor(x).astype(np.int64), max(W - 2, 0))
-    i0 = np.minimum(np.floor(y).astype(np.int64), max(H - 2, 0))
-    j1 = np.minimum(j0 + 1, W - 1)
-    i1 = np.minimum(i0 + 1, H - 1)
-    fx = x - j0
-    fy = y - i0
-    return i0, i1, j0, j1, fx, fy
+    from .reconstruct.points import bilinear_corners
+
+    return bilinear_corners(depth.shape[0], depth.shape[1], uv)
 
 
 def _nearest(depth: np.ndarray, uv: np.ndarray) -> np.ndarray:

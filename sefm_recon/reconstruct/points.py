@@ -113,6 +113,19 @@ def clean_points(
     return mask
 
 
+def bilinear_corners(h: int, w: int, uv: np.ndarray):
+    """Rows i0, i1, columns j0, j1 and weights fx, fy of the 2x2 pixel centres around ``uv``.
+
+    ``uv`` (N, 2) are COLMAP positions (pixel (row i, col j) has its centre at
+    (j + 0.5, i + 0.5)), clamped to an (h, w) image.
+    """
+    x = np.clip(uv[:, 0] - 0.5, 0.0, w - 1.0)
+    y = np.clip(uv[:, 1] - 0.5, 0.0, h - 1.0)
+    j0 = np.minimum(np.floor(x).astype(np.int64), max(w - 2, 0))
+    i0 = np.minimum(np.floor(y).astype(np.int64), max(h - 2, 0))
+    return i0, np.minimum(i0 + 1, h - 1), j0, np.minimum(j0 + 1, w - 1), x - j0, y - i0
+
+
 def sample_colors(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
     """Bilinear colour lookup at COLMAP pixel coordinates.
 
@@ -131,15 +144,7 @@ def sample_colors(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
     uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
     h, w = img.shape[:2]
     ok = np.isfinite(uv).all(axis=1)
-    # array coordinates: pixel (row i, col j) has its centre at (j + 0.5, i + 0.5)
-    x = np.clip(np.where(ok, uv[:, 0], 0.5) - 0.5, 0.0, w - 1.0)
-    y = np.clip(np.where(ok, uv[:, 1], 0.5) - 0.5, 0.0, h - 1.0)
-    x0 = np.minimum(np.floor(x).astype(np.int64), max(w - 2, 0))
-    y0 = np.minimum(np.floor(y).astype(np.int64), max(h - 2, 0))
-    x1 = np.minimum(x0 + 1, w - 1)
-    y1 = np.minimum(y0 + 1, h - 1)
-    fx = x - x0
-    fy = y - y0
+    y0, y1, x0, x1, fx, fy = bilinear_corners(h, w, np.where(ok[:, None], uv, 0.5))
     if img.ndim == 3:
         fx = fx[:, None]
         fy = fy[:, None]
