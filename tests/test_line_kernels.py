@@ -6,7 +6,7 @@ import pytest
 from sefm_recon.geometry import kernels as gk
 from sefm_recon.geometry.epipolar import line_alphas, line_pairs, ray_angles, sample_line_channels
 from sefm_recon.matching import kernels as mk
-from sefm_recon.matching.sefm import coarse_depth_bounds, invert_band, search_band
+from sefm_recon.matching.sefm import CoarseLevel, coarse_depth_bounds, invert_band, search_band
 from sefm_recon.geometry.two_view import TwoView
 
 from .conftest import rot_y
@@ -96,7 +96,7 @@ def test_coarse_bounds_follow_the_coarse_depths_and_fall_back_elsewhere():
         xyz = np.array([[0.0, 0.0, 3.0], [0.0, 0.0, 5.0]])
 
     shape = (SIZE[1] // 2, SIZE[0] // 2)
-    dmin, dmax = coarse_depth_bounds(lp, (Coarse, (0.5, 0.5), shape), 1, (1.0, np.inf))
+    dmin, dmax = coarse_depth_bounds(lp, CoarseLevel(Coarse, (0.5, 0.5), shape), 1, (1.0, np.inf))
     pts = lp.all_points1() * 0.5
     near = (np.abs(np.floor(pts[:, 0]) - 100.5) <= 1.5) & (np.abs(np.floor(pts[:, 1]) - 100) <= 1)
     assert near.any() and (~near).any()

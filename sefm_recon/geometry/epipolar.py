@@ -52,23 +52,18 @@ class LinePairs:
     def __len__(self) -> int:
         return len(self.phi)
 
-    def points1(self, line: np.ndarray, k: np.ndarray) -> np.ndarray:
-        """Pixel positions of (fractional) samples ``k`` on lines ``line`` of image 1, (N, 2)."""
-        return self.start1[line] + k[:, None] * self.step1[line]
-
-    def points2(self, line: np.ndarray, k: np.ndarray) -> np.ndarray:
-        return self.start2[line] + k[:, None] * self.step2[line]
+    def side(self, which: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``start`` (L, 2), ``step`` (L, 2) float64 and ``offset`` (L + 1,) of image ``which`` (1 or 2)."""
+        start, step, off = (self.start1, self.step1, self.offset1) if which == 1 else (
+            self.start2, self.step2, self.offset2)
+        return np.ascontiguousarray(start, np.float64), np.ascontiguousarray(step, np.float64), off
 
     def all_points1(self) -> np.ndarray:
-        """(N1, 2) positions of every sample of image 1 (computed once, then cached: do not modify)."""
-        if getattr(self, "_points1", None) is None:
-            self._points1 = _expand(self.start1, self.step1, self.count1)
-        return self._points1
+        """(N1, 2) positions of every sample of image 1."""
+        return _expand(self.start1, self.step1, self.count1)
 
     def all_points2(self) -> np.ndarray:
-        if getattr(self, "_points2", None) is None:
-            self._points2 = _expand(self.start2, self.step2, self.count2)
-        return self._points2
+        return _expand(self.start2, self.step2, self.count2)
 
 
 def _expand(start, step, count) -> np.ndarray:
@@ -298,10 +293,9 @@ def line_alphas(lp: LinePairs, K: np.ndarray, Rc: np.ndarray, which: int) -> np.
     """
     from .kernels import line_alphas as kernel
 
-    start, step, off = (lp.start1, lp.step1, lp.offset1) if which == 1 else (lp.start2, lp.step2, lp.offset2)
+    start, step, off = lp.side(which)
     Minv = np.ascontiguousarray(Rc @ np.linalg.inv(K))
-    return kernel(np.ascontiguousarray(start, np.float64), np.ascontiguousarray(step, np.float64), off, Minv,
-                  np.ascontiguousarray(lp.basis, np.float64))
+    return kernel(start, step, off, Minv, np.ascontiguousarray(lp.basis, np.float64))
 
 
 def sample_line_channels(image: np.ndarray, lp: LinePairs, K: np.ndarray, Rc: np.ndarray, which: int,
@@ -323,15 +317,14 @@ def sample_line_channels(image: np.ndarray, lp: LinePairs, K: np.ndarray, Rc: np
     """
     from .kernels import sample_line_channels as kernel
 
-    start, step, off = (lp.start1, lp.step1, lp.offset1) if which == 1 else (lp.start2, lp.step2, lp.offset2)
+    start, step, off = lp.side(which)
     img = np.ascontiguousarray(image, np.float32)
     if img.ndim == 2:
         img = img[:, :, None]
     offsets = np.arange(-neighbours, neighbours + 1) * neighbour_step * lp.phi_step
     Minv = np.ascontiguousarray(Rc @ np.linalg.inv(K))  # homogeneous pixel -> camera-1-axes ray
     M = np.ascontiguousarray(K @ Rc.T)  # and back
-    return kernel(img, np.ascontiguousarray(start, np.float64), np.ascontiguousarray(step, np.float64), off,
-                  np.ascontiguousarray(lp.phi, np.float64), offsets.astype(np.float64),
+    return kernel(img, start, step, off, np.ascontiguousarray(lp.phi, np.float64), offsets.astype(np.float64),
                   np.ascontiguousarray(lp.basis, np.float64), Minv, M)
 
 

@@ -127,6 +127,18 @@ def _first_at_least(a, s, e, v):
     return s
 
 
+@njit(cache=True)
+def _first_above(a, s, e, v):
+    """First index i in [s, e) with a[i] > v (a sorted), e if none."""
+    while s < e:
+        m = (s + e) >> 1
+        if a[m] <= v:
+            s = m + 1
+        else:
+            e = m
+    return s
+
+
 @njit(parallel=True, cache=True)
 def depth_band(a1, off1, a2, off2, dmin, dmax, baseline, slack):
     """For each line-1 sample, the line-2 sample range holding points at distances [dmin, dmax].
@@ -160,16 +172,7 @@ def depth_band(a1, off1, a2, off2, dmin, dmax, baseline, slack):
             else:
                 lo_a = a1[i]
             a = _first_at_least(a2, s2, e2, lo_a) - s2 - slack
-            # last index with a2 <= hi_a: first index with a2 > hi_a, minus one
-            s = s2
-            e = e2
-            while s < e:
-                m = (s + e) >> 1
-                if a2[m] <= hi_a:
-                    s = m + 1
-                else:
-                    e = m
-            b = s - 1 - s2 + slack
+            b = _first_above(a2, s2, e2, hi_a) - 1 - s2 + slack  # last index with a2 <= hi_a
             lo[i] = min(max(a, 0), n2 - 1)
             hi[i] = min(max(b, -1), n2 - 1)
     return lo, hi

@@ -707,6 +707,31 @@ def _ncc(sxy, sx, sy, syy, vx, m):
     return (sxy - sx * sy / m) / np.sqrt(vx * vy)
 
 
+@njit(cache=True)
+def _zncc_search(a, i, b, first, n, half, min_zncc):
+    """Best ZNCC of ``a[i]``'s window over line-2 positions ``first + d``, d = 0..n-1.
+
+    A best position reaching ``min_zncc`` is refined by a parabola through its
+    neighbours (by at most half a sample). Returns (best ZNCC, position).
+    """
+    best = -2.0
+    bj = first
+    for d in range(n):
+        z = _zncc(a, i, b, first + d, half)
+        if z > best:
+            best = z
+            bj = first + d
+    if best < min_zncc:
+        return best, bj
+    zl = _zncc(a, i, b, bj - 1.0, half)
+    zr = _zncc(a, i, b, bj + 1.0, half)
+    den = zl - 2.0 * best + zr
+    off = 0.0
+    if zl > -2.0 and zr > -2.0 and den < 0.0:
+        off = min(0.5, max(-0.5, 0.5 * (zl - zr) / den))
+    return best, bj + off
+
+
 @njit(parallel=True, cache=True)
 def fill_gaps(I1, off1, I2, off2, j, max_gap, radius, half, min_zncc):
     """Fill short gaps of unmatched samples between matched ones on each line.
@@ -737,22 +762,9 @@ def fill_gaps(I1, off1, I2, off2, j, max_gap, radius, half, min_zncc):
                 if j1 > j0:
                     for g in range(prev + 1, i):
                         pred = j0 + (j1 - j0) * (g - prev) / (i - prev)
-                        best = -2.0
-                        bj = 0.0
-                        for d in range(-radius, radius + 1):
-                            z = _zncc(a, g, b, pred + d, half)
-                            if z > best:
-                                best = z
-                                bj = pred + d
+                        best, pos = _zncc_search(a, g, b, pred - radius, 2 * radius + 1, half, min_zncc)
                         if best >= min_zncc:
-                            zl = _zncc(a, g, b, bj - 1.0, half)
-                            zr = _zncc(a, g, b, bj + 1.0, half)
-                            den = zl - 2.0 * best + zr
-                            off = 0.0
-                            if zl > -2.0 and zr > -2.0 and den < 0.0:
-                                off = 0.5 * (zl - zr) / den
-                                off = min(0.5, max(-0.5, off))
-                            out[s1 + g] = bj + off
+                            out[s1 + g] = pos
                             filled[s1 + g] = True
             prev = i
     return out, filled
@@ -794,6 +806,44 @@ def refine_subpixel(I1, off1, I2, off2, j, half, max_shift):
     return out, zncc
 
 
+@njit(cache=True)
+def _midpoint(Kinv1, Kinv2, Rt, c2, x1, y1, x2, y2):
+    """Midpoint of the shortest segment between the rays of pixels (x1, y1) and (x2, y2).
+
+    Returns X0, X1, X2 (camera-1 frame), s1, s2 (distances along the unit rays;
+    NaN for parallel rays) and the cosine of the angle between the rays.
+    """
+    a0 = Kinv1[0, 0] * x1 + Kinv1[0, 1] * y1 + Kinv1[0, 2]
+    a1 = Kinv1[1, 0] * x1 + Kinv1[1, 1] * y1 + Kinv1[1, 2]
+    a2 = Kinv1[2, 0] * x1 + Kinv1[2, 1] * y1 + Kinv1[2, 2]
+    q0 = Kinv2[0, 0] * x2 + Kinv2[0, 1] * y2 + Kinv2[0, 2]
+    q1 = Kinv2[1, 0] * x2 + Kinv2[1, 1] * y2 + Kinv2[1, 2]
+    q2 = Kinv2[2, 0] * x2 + Kinv2[2, 1] * y2 + Kinv2[2, 2]
+    b0 = Rt[0, 0] * q0 + Rt[0, 1] * q1 + Rt[0, 2] * q2
+    b1 = Rt[1, 0] * q0 + Rt[1, 1] * q1 + Rt[1, 2] * q2
+    b2 = Rt[2, 0] * q0 + Rt[2, 1] * q1 + Rt[2, 2] * q2
+    na = np.sqrt(a0 * a0 + a1 * a1 + a2 * a2)
+    nb = np.sqrt(b0 * b0 + b1 * b1 + b2 * b2)
+    a0 /= na
+    a1 /= na
+    a2 /= na
+    b0 /= nb
+    b1 /= nb
+    b2 /= nb
+    dot = a0 * b0 + a1 * b1 + a2 * b2
+    e = a0 * c2[0] + a1 * c2[1] + a2 * c2[2]
+    f = b0 * c2[0] + b1 * c2[1] + b2 * c2[2]
+    den = 1.0 - dot * dot
+    if den > 0.0:
+        s1 = (e - dot * f) / den
+        s2 = (dot * e - f) / den
+    else:
+        s1 = np.nan
+        s2 = np.nan
+    return (0.5 * (s1 * a0 + c2[0] + s2 * b0), 0.5 * (s1 * a1 + c2[1] + s2 * b1),
+            0.5 * (s1 * a2 + c2[2] + s2 * b2), s1, s2, dot)
+
+
 @njit(parallel=True, cache=True)
 def triangulate_midpoint(Kinv1, Kinv2, Rt, c2, uv1, uv2):
     """Midpoint triangulation; see :func:`sefm_recon.geometry.triangulate.triangulate`.
@@ -806,36 +856,10 @@ def triangulate_midpoint(Kinv1, Kinv2, Rt, c2, uv1, uv2):
     s1o = np.empty(n)
     s2o = np.empty(n)
     co = np.empty(n)
-    for k in prange(n):
-        a = np.empty(3)
-        b = np.empty(3)
-        for i in range(3):
-            a[i] = Kinv1[i, 0] * uv1[k, 0] + Kinv1[i, 1] * uv1[k, 1] + Kinv1[i, 2]
-        r2 = np.empty(3)
-        for i in range(3):
-            r2[i] = Kinv2[i, 0] * uv2[k, 0] + Kinv2[i, 1] * uv2[k, 1] + Kinv2[i, 2]
-        for i in range(3):
-            b[i] = Rt[i, 0] * r2[0] + Rt[i, 1] * r2[1] + Rt[i, 2] * r2[2]
-        na = np.sqrt(a[0] ** 2 + a[1] ** 2 + a[2] ** 2)
-        nb = np.sqrt(b[0] ** 2 + b[1] ** 2 + b[2] ** 2)
-        for i in range(3):
-            a[i] /= na
-            b[i] /= nb
-        dot = a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
-        e = a[0] * c2[0] + a[1] * c2[1] + a[2] * c2[2]
-        f = b[0] * c2[0] + b[1] * c2[1] + b[2] * c2[2]
-        den = 1.0 - dot * dot
-        if den > 0.0:
-            s1 = (e - dot * f) / den
-            s2 = (dot * e - f) / den
-        else:
-            s1 = np.nan
-            s2 = np.nan
-        for i in range(3):
-            X[k, i] = 0.5 * (s1 * a[i] + c2[i] + s2 * b[i])
-        s1o[k] = s1
-        s2o[k] = s2
-        co[k] = dot
+    for kk in prange(n):
+        k = np.int64(kk)
+        X[k, 0], X[k, 1], X[k, 2], s1o[k], s2o[k], co[k] = _midpoint(Kinv1, Kinv2, Rt, c2, uv1[k, 0], uv1[k, 1],
+                                                                     uv2[k, 0], uv2[k, 1])
     return X, s1o, s2o, co
 
 
@@ -879,26 +903,11 @@ def fill_from_band(I1, off1, I2, off2, j, lo, hi, max_width, half, min_zncc):
         for i in range(off1[l + 1] - s1):
             if not np.isnan(j[s1 + i]) or hi[s1 + i] < lo[s1 + i] or hi[s1 + i] - lo[s1 + i] + 1 > max_width:
                 continue
-            best = -2.0
-            bj = 0
-            second = -2.0
-            for d in range(lo[s1 + i], hi[s1 + i] + 1):
-                z = _zncc(a, i, b, float(d), half)
-                if z > best:
-                    second = best
-                    best = z
-                    bj = d
-                elif z > second:
-                    second = z
+            best, pos = _zncc_search(a, i, b, float(lo[s1 + i]), hi[s1 + i] - lo[s1 + i] + 1, half,
+                                     min_zncc)
             if best < min_zncc:
                 continue
-            zl = _zncc(a, i, b, bj - 1.0, half)
-            zr = _zncc(a, i, b, bj + 1.0, half)
-            den = zl - 2.0 * best + zr
-            off = 0.0
-            if zl > -2.0 and zr > -2.0 and den < 0.0:
-                off = min(0.5, max(-0.5, 0.5 * (zl - zr) / den))
-            out[s1 + i] = bj + off
+            out[s1 + i] = pos
             filled[s1 + i] = True
     return out, filled
 
@@ -947,33 +956,7 @@ def line_matches_to_points(j, cost, max_cost, start1, step1, off1, start2, step2
             y1 = start1[l, 1] + k * step1[l, 1]
             x2 = start2[l, 0] + j[i] * step2[l, 0]
             y2 = start2[l, 1] + j[i] * step2[l, 1]
-            a0 = Kinv1[0, 0] * x1 + Kinv1[0, 1] * y1 + Kinv1[0, 2]
-            a1 = Kinv1[1, 0] * x1 + Kinv1[1, 1] * y1 + Kinv1[1, 2]
-            a2 = Kinv1[2, 0] * x1 + Kinv1[2, 1] * y1 + Kinv1[2, 2]
-            q0 = Kinv2[0, 0] * x2 + Kinv2[0, 1] * y2 + Kinv2[0, 2]
-            q1 = Kinv2[1, 0] * x2 + Kinv2[1, 1] * y2 + Kinv2[1, 2]
-            q2 = Kinv2[2, 0] * x2 + Kinv2[2, 1] * y2 + Kinv2[2, 2]
-            b0 = Rt[0, 0] * q0 + Rt[0, 1] * q1 + Rt[0, 2] * q2
-            b1 = Rt[1, 0] * q0 + Rt[1, 1] * q1 + Rt[1, 2] * q2
-            b2 = Rt[2, 0] * q0 + Rt[2, 1] * q1 + Rt[2, 2] * q2
-            na = np.sqrt(a0 * a0 + a1 * a1 + a2 * a2)
-            nb = np.sqrt(b0 * b0 + b1 * b1 + b2 * b2)
-            a0 /= na
-            a1 /= na
-            a2 /= na
-            b0 /= nb
-            b1 /= nb
-            b2 /= nb
-            dot = a0 * b0 + a1 * b1 + a2 * b2
-            e = a0 * c2[0] + a1 * c2[1] + a2 * c2[2]
-            f = b0 * c2[0] + b1 * c2[1] + b2 * c2[2]
-            den = 1.0 - dot * dot
-            ok = den > 1e-12
-            s1 = (e - dot * f) / den if ok else np.nan
-            s2 = (dot * e - f) / den if ok else np.nan
-            X0 = 0.5 * (s1 * a0 + c2[0] + s2 * b0)
-            X1 = 0.5 * (s1 * a1 + c2[1] + s2 * b1)
-            X2 = 0.5 * (s1 * a2 + c2[2] + s2 * b2)
+            X0, X1, X2, s1, s2, dot = _midpoint(Kinv1, Kinv2, Rt, c2, x1, y1, x2, y2)
             idx[p] = i
             line[p] = l
             uv1[p, 0] = x1
@@ -984,6 +967,6 @@ def line_matches_to_points(j, cost, max_cost, start1, step1, off1, start2, step2
             X[p, 1] = X1
             X[p, 2] = X2
             dist[p] = np.sqrt(X0 * X0 + X1 * X1 + X2 * X2)
-            valid[p] = ok and s1 > 0 and s2 > 0 and np.isfinite(dist[p]) and dot <= cos_max
+            valid[p] = 1.0 - dot * dot > 1e-12 and s1 > 0 and s2 > 0 and np.isfinite(dist[p]) and dot <= cos_max
             p += 1
     return idx, line, uv1, uv2, X, dist, valid

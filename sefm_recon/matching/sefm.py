@@ -10,6 +10,7 @@ import dataclasses
 import logging
 import time
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import cv2
 import numpy as np
@@ -107,11 +108,19 @@ def _half(image: np.ndarray) -> tuple[np.ndarray, float, float]:
     return small, small.shape[1] / w, small.shape[0] / h
 
 
-def coarse_level(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config) -> tuple | None:
+class CoarseLevel(NamedTuple):
+    """A half-size level's matches, and how image 1 was scaled for it."""
+
+    matches: DenseMatches
+    scale: tuple[float, float]  #: (sx, sy): half-size COLMAP pixels per full-size pixel
+    shape: tuple[int, int]  #: (height, width) of the half-size image 1
+
+
+def coarse_level(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config) -> CoarseLevel | None:
     """Match the pair at half size (itself coarse to fine when still large).
 
-    Returns ``(matches, (sx, sy), shape)`` of the half-size image 1, or None
-    when the images are small enough to match directly (``pyramid.min_size``).
+    Returns None when the images are small enough to match directly
+    (``pyramid.min_size``).
     """
     p = cfg.pyramid
     longest = max(img1.shape[:2] + img2.shape[:2])
@@ -129,10 +138,10 @@ def coarse_level(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config) -
         dm = match_pair(c1, c2, tvc, ccfg)
     except InputError:
         return None
-    return dm, (sx1, sy1), c1.shape[:2]
+    return CoarseLevel(dm, (sx1, sy1), c1.shape[:2])
 
 
-def coarse_depth_bounds(lp: LinePairs, coarse: tuple, radius: int, depths: tuple[float, float]):
+def coarse_depth_bounds(lp: LinePairs, coarse: CoarseLevel, radius: int, depths: tuple[float, float]):
     """Distance range (dmin, dmax) per line-1 sample from the coarse level's matches.
 
     Each sample's range is the smallest and largest distance the coarse level
@@ -155,8 +164,7 @@ def coarse_depth_bounds(lp: LinePairs, coarse: tuple, radius: int, depths: tuple
         kernel = np.ones((2 * radius + 1, 2 * radius + 1), np.uint8)
         gmin = cv2.erode(gmin, kernel, borderType=cv2.BORDER_REPLICATE)
         gmax = cv2.dilate(gmax, kernel, borderType=cv2.BORDER_REPLICATE)
-    return lookup_depth_bounds(np.ascontiguousarray(lp.start1, np.float64), np.ascontiguousarray(lp.step1, np.float64),
-                               lp.offset1, float(sx), float(sy), gmin, gmax, float(depths[0]), float(depths[1]))
+    return lookup_depth_bounds(*lp.side(1), float(sx), float(sy), gmin, gmax, float(depths[0]), float(depths[1]))
 
 
 def _match_direction(Ia, offa, Ib, offb, lo, hi, cfg: Config, bar=None):
@@ -206,8 +214,8 @@ def match_pair(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config, pro
     coarse = coarse_level(img1, img2, tv, cfg)
     if coarse is not None:
         timings["coarse"] = time.perf_counter() - t0
-        logger.info("coarse level %dx%d: %d matches in %.2f s", coarse[2][1], coarse[2][0], len(coarse[0].uv1),
-                    timings["coarse"])
+        logger.info("coarse level %dx%d: %d matches in %.2f s", coarse.shape[1], coarse.shape[0],
+                    len(coarse.matches.uv1), timings["coarse"])
     t0 = time.perf_counter()
     size1 = (img1.shape[1], img1.shape[0])
     size2 = (img2.shape[1], img2.shape[0])
@@ -268,11 +276,11 @@ def match_pair(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config, pro
     t0 = time.perf_counter()
     dense = np.isfinite(j)
     Rt = np.ascontiguousarray(tv.R.T)
+    start1, step1, _ = lp.side(1)
+    start2, step2, _ = lp.side(2)
     idx, line, uv1, uv2, X, dist, valid = kernels.line_matches_to_points(
-        j, cost, cfg.validity.max_cost, np.ascontiguousarray(lp.start1, np.float64),
-        np.ascontiguousarray(lp.step1, np.float64), off1, np.ascontiguousarray(lp.start2, np.float64),
-        np.ascontiguousarray(lp.step2, np.float64), np.linalg.inv(tv.K1), np.linalg.inv(tv.K2), Rt,
-        -Rt @ np.asarray(tv.t, np.float64), np.radians(cfg.validity.min_tri_angle_deg))
+        j, cost, cfg.validity.max_cost, start1, step1, off1, start2, step2, np.linalg.inv(tv.K1),
+        np.linalg.inv(tv.K2), Rt, -Rt @ np.asarray(tv.t, np.float64), np.radians(cfg.validity.min_tri_angle_deg))
     keep = np.zeros(len(idx), bool)
     vi = np.flatnonzero(valid)
     keep[vi] = depth_continuity(dist[vi], line[vi], cfg.validity.sp_depth_jump, cfg.validity.sp_min_run)
