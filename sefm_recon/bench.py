@@ -20,7 +20,7 @@ from pathlib import Path
 
 logger = logging.getLogger(__name__)
 
-#: Stages counted as "matching" for the SeFM/SGBM comparison: what replaces SGBM (coarse: the half-size level).
+#: Stages counted as "matching" for the SeFM/SGBM comparison: what replaces SGBM (coarse: the reduced-size level).
 MATCHING_STAGES = ("coarse", "line_pairs", "matching", "validity")
 
 

@@ -53,9 +53,10 @@ class RoughConfig:
 
 @dataclass
 class PyramidConfig:
-    """Coarse to fine: a half-size match first bounds each sample's search band."""
+    """Coarse to fine: a match at reduced size first bounds each sample's search band."""
 
-    min_size: int = 600  #: images with a longer side than this are matched at half size first (0 = never)
+    min_size: int = 600  #: images with a longer side than this are matched at reduced size first (0 = never)
+    factor: int = 4  #: size reduction from one level to the next (a 2000 px pair: 500 px, then 2000 px)
     radius: int = 2  #: coarse pixels around a sample whose depths bound its band
     coarse_subpixel: bool = False  #: sub-pixel refinement, gap filling and the ZNCC test at the coarse levels too
     fill_width: int = 12  #: unmatched samples whose coarse-bounded band is at most this wide are matched by ZNCC (0 = off)
@@ -186,6 +187,7 @@ _LIMITS: dict[str, tuple[float | None, float | None, bool]] = {
     "sift.max_ratio": (0, 1, True),
     "sift.max_image_size": (0, None, False),
     "pyramid.min_size": (0, None, False),
+    "pyramid.factor": (2, 16, False),
     "pyramid.radius": (0, 16, False),
     "pyramid.fill_width": (0, 256, False),
     "dense.min_zncc": (-1, 1, False),

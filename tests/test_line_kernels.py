@@ -109,13 +109,19 @@ def test_coarse_bounds_follow_the_coarse_depths_and_fall_back_elsewhere():
 
 def test_two_d_check_drops_a_point_the_majority_disagrees_with():
     rows, cols = np.mgrid[0:5, 0:5]
-    rows, cols = rows.ravel().astype(np.int64), cols.ravel().astype(np.int64)
+    uv = np.stack([cols.ravel(), rows.ravel()], 1) + 0.5  # pixel centres
     value = np.ones(25)
     value[12] = 5.0  # the centre disagrees with all 24 neighbours
     value[0] = 1.5  # a corner within tol of its neighbours
-    keep, support = mk.grid_median_check(rows, cols, value, 5, 5, 2, 1.0, 6, False)
+    mask = np.ones(25, bool)
+    keep, support = mk.grid_median_check(uv, value, mask, 5, 5, 2, 1.0, 6, False)
     assert not keep[12] and keep[0] and keep[1:12].all()
     assert support[12] == 24 and support[0] == 8
+    # a point outside the mask neither takes part nor is kept
+    mask[12] = False
+    keep, support = mk.grid_median_check(uv, value, mask, 5, 5, 2, 1.0, 6, False)
+    assert not keep[12] and keep[:12].all() and keep[13:].all()
+    assert support[0] == 7 and support[6] == 14  # the masked centre no longer counts
 
 
 @pytest.mark.parametrize("jpos", [20.0, 20.3, 35.75])
@@ -144,3 +150,18 @@ def test_fill_from_band_finds_the_shift_inside_a_narrow_band():
     assert filled[inner].all() and not filled[:20].any()
     # the best whole shift, then a parabola (white noise has no smooth peak: within half a sample)
     np.testing.assert_array_equal(np.rint(out[inner]), inner + 4.0)
+
+
+def test_galloping_search_equals_bisection_from_any_guess():
+    from sefm_recon.geometry.kernels import _first_above, _first_at_least, _gallop
+
+    rng = np.random.default_rng(0)
+    for _ in range(3000):
+        n = int(rng.integers(1, 40))
+        a = np.sort(rng.integers(0, 20, n)).astype(float)  # ties included
+        s = int(rng.integers(0, n))
+        e = int(rng.integers(s, n + 1))
+        v = float(rng.integers(-2, 22)) + float(rng.choice([0.0, 0.5]))
+        guess = int(rng.integers(-3, n + 4))  # also outside [s, e]
+        assert _gallop(a, s, e, v, guess, False) == _first_at_least(a, s, e, v)
+        assert _gallop(a, s, e, v, guess, True) == _first_above(a, s, e, v)

@@ -97,3 +97,13 @@ def test_depth_continuity_drops_spikes_but_keeps_steps():
     # runs do not continue across lines
     line2 = np.r_[np.zeros(2, np.int64), np.ones(5, np.int64)]
     np.testing.assert_array_equal(depth_continuity(np.ones(7), line2, 0.05, 3), [False] * 2 + [True] * 5)
+    # masked-out points are skipped: the spike masked, the line is one run; a masked point is never kept
+    mask = np.ones(len(depth), bool)
+    mask[20] = False
+    mask[5] = False
+    keep = depth_continuity(depth, line, jump=0.05, min_run=3, mask=mask)
+    assert not keep[20] and not keep[5]
+    assert keep[:5].all() and keep[6:20].all() and keep[21:].all()
+    # a run made short by the mask is dropped
+    np.testing.assert_array_equal(depth_continuity(np.ones(4), np.zeros(4, np.int64), 0.05, 3,
+                                                   mask=np.array([True, False, True, False])), [False] * 4)

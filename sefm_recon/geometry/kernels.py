@@ -139,6 +139,36 @@ def _first_above(a, s, e, v):
     return s
 
 
+@njit(cache=True)
+def _gallop(a, s, e, v, guess, strict):
+    """:func:`_first_at_least` (``strict``: :func:`_first_above`), searching out from ``guess``.
+
+    Neighbouring samples have nearby bands, so the answer is most often a
+    step or two from the previous one: widen a bracket around ``guess``
+    by doubling, then bisect inside it.
+    """
+    g = min(max(guess, s), e)
+    step = 1
+    if g == e or (a[g] > v if strict else a[g] >= v):  # the answer is at or below g
+        hi = g
+        lo = g - step
+        while lo > s and (a[lo] > v if strict else a[lo] >= v):
+            hi = lo
+            step *= 2
+            lo = g - step
+        lo = max(lo, s)
+    else:  # the answer is above g
+        lo = min(g + 1, e)
+        hi = min(g + step, e)
+        while hi < e and not (a[hi] > v if strict else a[hi] >= v):
+            lo = hi + 1
+            step *= 2
+            hi = min(g + step, e)
+    if strict:
+        return _first_above(a, lo, hi, v)
+    return _first_at_least(a, lo, hi, v)
+
+
 @njit(parallel=True, cache=True)
 def depth_band(a1, off1, a2, off2, dmin, dmax, baseline, slack):
     """For each line-1 sample, the line-2 sample range holding points at distances [dmin, dmax].
@@ -163,6 +193,8 @@ def depth_band(a1, off1, a2, off2, dmin, dmax, baseline, slack):
         s2 = off2[l]
         e2 = off2[l + 1]
         n2 = e2 - s2
+        ga = s2
+        gb = s2
         for i in range(off1[l], off1[l + 1]):
             sa = np.sin(a1[i])
             ca = np.cos(a1[i])
@@ -171,8 +203,10 @@ def depth_band(a1, off1, a2, off2, dmin, dmax, baseline, slack):
                 lo_a = np.arctan2(dmax[i] * sa, dmax[i] * ca - baseline)
             else:
                 lo_a = a1[i]
-            a = _first_at_least(a2, s2, e2, lo_a) - s2 - slack
-            b = _first_above(a2, s2, e2, hi_a) - 1 - s2 + slack  # last index with a2 <= hi_a
+            ga = _gallop(a2, s2, e2, lo_a, ga, False)
+            gb = _gallop(a2, s2, e2, hi_a, gb, True)
+            a = ga - s2 - slack
+            b = gb - 1 - s2 + slack  # last index with a2 <= hi_a
             lo[i] = min(max(a, 0), n2 - 1)
             hi[i] = min(max(b, -1), n2 - 1)
     return lo, hi

@@ -533,13 +533,15 @@ def match_lines(I1, off1, I2, off2, lo, hi, threshold, radius, ncoef, max_dist,
 
 
 @njit(parallel=True, cache=True)
-def depth_runs_filter(depth, line_of, jump, min_run):
+def depth_runs_filter(depth, line_of, jump, min_run, mask):
     """S_p (paper §4.5): keep points whose depth continues their neighbours'.
 
     Points are in line order (``line_of`` non-decreasing, samples increasing
-    along each line). A relative depth change above ``jump`` between consecutive
-    points starts a new run; runs shorter than ``min_run`` points are isolated
-    depth spikes (mismatches) and are dropped. Returns a keep mask.
+    along each line); only those with ``mask`` set take part (the others are
+    skipped, as if absent, and not kept). A relative depth change above
+    ``jump`` between consecutive points starts a new run; runs shorter than
+    ``min_run`` points are isolated depth spikes (mismatches) and are dropped.
+    Returns a keep mask.
     """
     n = depth.shape[0]
     keep = np.zeros(n, np.bool_)
@@ -554,49 +556,63 @@ def depth_runs_filter(depth, line_of, jump, min_run):
     for s in prange(ns):
         a = starts[s]
         e = starts[s + 1]
-        r0 = a
+        first = a  # first point of the current run
+        prev = -1  # last point taken part
+        count = 0  # points of the current run
         for i in range(a, e + 1):
+            if i < e and not mask[i]:
+                continue
             brk = i == e
-            if not brk:
-                if i > a:
-                    d0 = depth[i - 1]
-                    d1 = depth[i]
-                    if abs(d1 - d0) > jump * min(d0, d1):
-                        brk = True
+            if not brk and prev >= 0:
+                d0 = depth[prev]
+                d1 = depth[i]
+                brk = abs(d1 - d0) > jump * min(d0, d1)
             if brk:
-                if i - r0 >= min_run:
-                    for k in range(r0, i):
-                        keep[k] = True
-                r0 = i
+                if count >= min_run:
+                    for k in range(first, i):
+                        if mask[k]:
+                            keep[k] = True
+                first = i
+                count = 0
+            prev = i
+            count += 1
     return keep
 
 
 @njit(parallel=True, cache=True)
-def grid_median_check(rows, cols, value, height, width, radius, tol, min_support, drop_isolated=False):
+def grid_median_check(uv, value, mask, height, width, radius, tol, min_support, drop_isolated=False):
     """2-D consistency: compare each point's value with the median of its neighbours.
 
-    Points are rasterised into a (height, width) grid (the first point of a
-    cell wins); a point is kept when at least ``min_support`` other cells of
-    its ``(2 radius + 1)^2`` window hold a value and the point is within
-    ``tol`` of their median; a point with too few neighbours to judge is kept,
-    unless ``drop_isolated``. The median test is done by counting, without
-    sorting: the median lies more than ``tol`` above the point exactly when
-    more than half of the neighbours do (an even count split in half is kept).
+    Points with ``mask`` set are rasterised into a (height, width) grid at
+    ``floor(uv)`` (the first point of a cell wins); such a point is kept when
+    at least ``min_support`` other cells of its ``(2 radius + 1)^2`` window
+    hold a value and the point is within ``tol`` of their median; a point with
+    too few neighbours to judge is kept, unless ``drop_isolated``. The median
+    test is done by counting, without sorting: the median lies more than
+    ``tol`` above the point exactly when more than half of the neighbours do
+    (an even count split in half is kept). Points without ``mask`` are not kept.
+
+    Args:
+        uv: (N, 2) positions (x, y), COLMAP pixels; value, mask: (N,).
     Returns (keep (N,) bool, support (N,) int64).
     """
-    n = rows.shape[0]
+    n = uv.shape[0]
     grid = np.full((height, width), np.nan, np.float32)
     for k in range(n):
-        r = rows[k]
-        c = cols[k]
+        if not mask[k]:
+            continue
+        r = int(np.floor(uv[k, 1]))
+        c = int(np.floor(uv[k, 0]))
         if 0 <= r < height and 0 <= c < width and np.isnan(grid[r, c]):
             grid[r, c] = value[k]
-    keep = np.ones(n, np.bool_)
+    keep = np.zeros(n, np.bool_)
     support = np.zeros(n, np.int64)
     for kk in prange(n):
         k = np.int64(kk)
-        r = rows[k]
-        c = cols[k]
+        if not mask[k]:
+            continue
+        r = int(np.floor(uv[k, 1]))
+        c = int(np.floor(uv[k, 0]))
         x = value[k]
         m = 0
         above = 0
@@ -614,10 +630,9 @@ def grid_median_check(rows, cols, value, height, width, radius, tol, min_support
                         below += 1
         support[k] = m
         if m >= min_support:
-            if 2 * above > m or 2 * below > m:
-                keep[k] = False
-        elif drop_isolated:
-            keep[k] = False
+            keep[k] = not (2 * above > m or 2 * below > m)
+        else:
+            keep[k] = not drop_isolated
     return keep, support
 
 

@@ -101,33 +101,34 @@ def consistent(j12: np.ndarray, i21: np.ndarray, off1, off2, count2, tol: float)
     return out
 
 
-def _half(image: np.ndarray) -> tuple[np.ndarray, float, float]:
-    """Image at half size (area average) and the x, y scale factors (COLMAP pixels scale by them)."""
+def _reduce(image: np.ndarray, factor: int) -> tuple[np.ndarray, float, float]:
+    """Image reduced ``factor`` times (area average) and the x, y scale factors (COLMAP pixels scale by them)."""
     h, w = image.shape[:2]
-    small = cv2.resize(image, ((w + 1) // 2, (h + 1) // 2), interpolation=cv2.INTER_AREA)
+    small = cv2.resize(image, (-(-w // factor), -(-h // factor)), interpolation=cv2.INTER_AREA)
     return small, small.shape[1] / w, small.shape[0] / h
 
 
 class CoarseLevel(NamedTuple):
-    """A half-size level's matches, and how image 1 was scaled for it."""
+    """A coarser level's matches, and how image 1 was scaled for it."""
 
     matches: DenseMatches
-    scale: tuple[float, float]  #: (sx, sy): half-size COLMAP pixels per full-size pixel
-    shape: tuple[int, int]  #: (height, width) of the half-size image 1
+    scale: tuple[float, float]  #: (sx, sy): coarse COLMAP pixels per full-size pixel
+    shape: tuple[int, int]  #: (height, width) of the coarse image 1
 
 
 def coarse_level(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config) -> CoarseLevel | None:
-    """Match the pair at half size (itself coarse to fine when still large).
+    """Match the pair reduced ``pyramid.factor`` times (itself coarse to fine when still large).
 
     Returns None when the images are small enough to match directly
-    (``pyramid.min_size``).
+    (``pyramid.min_size``). A factor of 4 rather than 2 measured as accurate
+    and saved the middle level's time (README, speed).
     """
     p = cfg.pyramid
     longest = max(img1.shape[:2] + img2.shape[:2])
     if p.min_size <= 0 or longest <= p.min_size or longest < 512:
         return None
-    c1, sx1, sy1 = _half(img1)
-    c2, sx2, sy2 = _half(img2)
+    c1, sx1, sy1 = _reduce(img1, p.factor)
+    c2, sx2, sy2 = _reduce(img2, p.factor)
     S1 = np.diag([sx1, sy1, 1.0])
     S2 = np.diag([sx2, sy2, 1.0])
     tvc = dataclasses.replace(tv, K1=S1 @ tv.K1, K2=S2 @ tv.K2, kp1=tv.kp1 * [sx1, sy1], kp2=tv.kp2 * [sx2, sy2])
@@ -281,17 +282,16 @@ def match_pair(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config, pro
     idx, line, uv1, uv2, X, dist, valid = kernels.line_matches_to_points(
         j, cost, cfg.validity.max_cost, start1, step1, off1, start2, step2, np.linalg.inv(tv.K1),
         np.linalg.inv(tv.K2), Rt, -Rt @ np.asarray(tv.t, np.float64), np.radians(cfg.validity.min_tri_angle_deg))
-    keep = np.zeros(len(idx), bool)
-    vi = np.flatnonzero(valid)
-    keep[vi] = depth_continuity(dist[vi], line[vi], cfg.validity.sp_depth_jump, cfg.validity.sp_min_run)
+    keep = depth_continuity(dist, line, cfg.validity.sp_depth_jump, cfg.validity.sp_min_run, mask=valid)
     if cfg.validity.neighbour_tol_px > 0:
-        ki = np.flatnonzero(keep)
         # One pixel of disparity is about 1 / (f * B) in inverse depth.
         scale = float(tv.K1[0, 0] * np.linalg.norm(tv.t))
-        keep[ki] = neighbour_consistency(uv1[ki], scale / dist[ki], img1.shape[:2], cfg.validity.neighbour_radius,
-                                         cfg.validity.neighbour_tol_px, cfg.validity.neighbour_support,
-                                         cfg.validity.drop_isolated)
-    score = 1.0 / (1.0 + cost[idx] / 8.0)
+        keep = neighbour_consistency(uv1, scale / dist, img1.shape[:2], cfg.validity.neighbour_radius,
+                                     cfg.validity.neighbour_tol_px, cfg.validity.neighbour_support,
+                                     cfg.validity.drop_isolated, mask=keep)
+    # Index arrays gather rows several times faster than boolean masks.
+    ki = np.flatnonzero(keep)
+    score = (1.0 / (1.0 + cost[idx.take(ki)] / 8.0)).astype(np.float32)
     timings["validity"] = time.perf_counter() - t0
     counts = {
         "line_pairs": int(len(lp)),
@@ -302,11 +302,12 @@ def match_pair(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config, pro
         "valid_segments": int(stats[:, 3].sum()),
         "dense_matches": n_dense,
         "consistent_matches": int(dense.sum()),
-        "valid_matches": int(keep.sum()),
+        "valid_matches": int(len(ki)),
     }
     logger.info(
         "SeFM: %d line pairs, %d rough matches, %d/%d valid segments, %d dense, %d valid",
         counts["line_pairs"], counts["rough_matches"], counts["valid_segments"], counts["segments"],
         counts["dense_matches"], counts["valid_matches"],
     )
-    return DenseMatches(uv1[keep], uv2[keep], score[keep].astype(np.float32), line[keep], X[keep], counts, timings)
+    return DenseMatches(uv1.take(ki, axis=0), uv2.take(ki, axis=0), score, line.take(ki), X.take(ki, axis=0),
+                        counts, timings)

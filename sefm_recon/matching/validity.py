@@ -13,7 +13,8 @@ import numpy as np
 from . import kernels
 
 
-def depth_continuity(depth: np.ndarray, line: np.ndarray, jump: float = 0.05, min_run: int = 5) -> np.ndarray:
+def depth_continuity(depth: np.ndarray, line: np.ndarray, jump: float = 0.05, min_run: int = 5,
+                     mask: np.ndarray | None = None) -> np.ndarray:
     """S_p: keep mask of points whose depth continues along their epipolar line.
 
     Args:
@@ -21,6 +22,7 @@ def depth_continuity(depth: np.ndarray, line: np.ndarray, jump: float = 0.05, mi
         line: (N,) line index of each match, non-decreasing.
         jump: relative depth change between consecutive points that counts as a jump.
         min_run: runs between jumps shorter than this are dropped as spikes.
+        mask: (N,) points that take part (default all); the others are skipped and not kept.
     """
     depth = np.ascontiguousarray(depth, np.float64)
     line = np.ascontiguousarray(line, np.int64)
@@ -28,11 +30,13 @@ def depth_continuity(depth: np.ndarray, line: np.ndarray, jump: float = 0.05, mi
         return np.zeros(0, bool)
     if np.any(np.diff(line) < 0):
         raise ValueError("points must be sorted by line")
-    return kernels.depth_runs_filter(depth, line, float(jump), int(min_run))
+    mask = np.ones(len(depth), bool) if mask is None else np.ascontiguousarray(mask, bool)
+    return kernels.depth_runs_filter(depth, line, float(jump), int(min_run), mask)
 
 
 def neighbour_consistency(uv: np.ndarray, inv_depth: np.ndarray, shape: tuple[int, int], radius: int = 2,
-                          tol: float = 1e-3, min_support: int = 6, drop_isolated: bool = False) -> np.ndarray:
+                          tol: float = 1e-3, min_support: int = 6, drop_isolated: bool = False,
+                          mask: np.ndarray | None = None) -> np.ndarray:
     """2-D consistency across neighbouring line pairs: keep mask (N,).
 
     Scanline DP decides each line alone, which leaves streaks: runs of wrong
@@ -46,12 +50,13 @@ def neighbour_consistency(uv: np.ndarray, inv_depth: np.ndarray, shape: tuple[in
 
     Args:
         uv: (N, 2) positions in image 1 (COLMAP pixels). shape: (height, width).
+        mask: (N,) matches that take part (default all); the others are not kept.
     """
     if len(uv) == 0:
         return np.zeros(0, bool)
-    cols = np.floor(uv[:, 0]).astype(np.int64)
-    rows = np.floor(uv[:, 1]).astype(np.int64)
-    keep, _ = kernels.grid_median_check(rows, cols, np.ascontiguousarray(inv_depth, np.float64), int(shape[0]),
+    mask = np.ones(len(uv), bool) if mask is None else np.ascontiguousarray(mask, bool)
+    keep, _ = kernels.grid_median_check(np.ascontiguousarray(uv, np.float64),
+                                        np.ascontiguousarray(inv_depth, np.float64), mask, int(shape[0]),
                                         int(shape[1]), int(radius), float(tol), int(min_support),
                                         bool(drop_isolated))
     return keep
