@@ -131,10 +131,10 @@ def reconstruct_pair(
     from .reconstruct.points import clean_points, estimate_normals, grid_normals, sample_colors
 
     rgb = sample_colors(v1.image, dm.uv1) if len(dm.uv1) else np.zeros((0, 3), np.uint8)
-    keep = np.ones(len(dm.xyz), bool)
+    xyz, uv1w, uv2w, score = dm.xyz, dm.uv1, dm.uv2, dm.score
     if cfg.output.clean_outliers and len(dm.xyz) > 32:
         keep = clean_points(dm.xyz)
-    xyz, uv1w, uv2w, score, rgb = dm.xyz[keep], dm.uv1[keep], dm.uv2[keep], dm.score[keep], rgb[keep]
+        xyz, uv1w, uv2w, score, rgb = xyz[keep], uv1w[keep], uv2w[keep], score[keep], rgb[keep]
     centres = np.stack([np.zeros(3), -tv.R.T @ tv.t])
     if len(xyz) == 0:
         raise InputError(

@@ -101,3 +101,23 @@ def test_sampling_stays_inside_the_image():
     img = np.arange(SIZE[0] * SIZE[1], dtype=np.float32).reshape(SIZE[1], SIZE[0])
     vals = sample_lines(img, np.array([[10.5, 20.5]]), np.array([[1.0, 0.0]]), np.array([3]))[:, 0]
     np.testing.assert_allclose(vals, img[20, 10:13], rtol=1e-6)
+
+
+@pytest.mark.parametrize("model,params", [("PINHOLE", [900.0, 880.0, 401.0, 299.0]),
+                                          ("SIMPLE_RADIAL", [900.0, 401.0, 299.0, 0.05])])
+def test_working_view_maps_back_to_the_original_pixels(model, params):
+    import pycolmap
+
+    from sefm_recon.geometry.undistort import make_working_view
+
+    cam = pycolmap.Camera(model=model, width=800, height=600, params=params)
+    image = np.zeros((600, 800, 3), np.uint8)
+    view = make_working_view(image, cam, max_size=400)  # half size
+    rng = np.random.default_rng(0)
+    uv = rng.uniform([0, 0], [400, 300], size=(50, 2))
+    orig = view.to_original(uv)
+    # the working pixel's ray, projected by the original camera (with its distortion)
+    rays = np.c_[uv, np.ones(len(uv))] @ np.linalg.inv(view.K).T
+    np.testing.assert_allclose(orig, cam.img_from_cam(rays), atol=1e-9)
+    if model == "PINHOLE":  # pixel edges scale exactly: the image corner maps to the corner
+        np.testing.assert_allclose(view.to_original(np.array([[400.0, 300.0]])), [[800.0, 600.0]], atol=1e-9)

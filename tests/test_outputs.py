@@ -129,6 +129,14 @@ def test_sample_colors_bilinear_colmap_convention():
     np.testing.assert_array_equal(c[2], [200, 0, 150])
     np.testing.assert_array_equal(c[3], img[0, 0])  # clamped
     np.testing.assert_array_equal(c[4], img[-1, -1])
+    # a non-finite position gives 0; a grey image gives (N,); a float image keeps its dtype
+    np.testing.assert_array_equal(sample_colors(img, [[np.nan, 1.0]])[0], [0, 0, 0])
+    grey = sample_colors(img[:, :, 0], uv)
+    assert grey.shape == (len(uv),) and grey.dtype == np.uint8
+    np.testing.assert_array_equal(grey, c[:, 0])
+    f = sample_colors(img.astype(np.float32) / 255, uv)
+    assert f.dtype == np.float32
+    np.testing.assert_allclose(f, c / 255, atol=0.5 / 255)
 
 
 def test_poisson_mesh_sphere():
@@ -268,3 +276,16 @@ def test_grid_normals_of_a_tilted_plane_face_the_camera():
     n = grid_normals(uv, X, (80, 100))
     assert np.all(np.abs(n @ n_true - 1) < 1e-6)
     assert np.all(np.sum(n * -X, axis=1) > 0)
+
+
+def test_finite_rows_flags_any_non_finite_entry():
+    from sefm_recon.arrays import finite_rows
+
+    a = np.ones((6, 3))
+    b = np.ones((6, 2))
+    a[1, 2] = np.nan
+    a[2, 0] = np.inf
+    b[3, 1] = -np.inf
+    a[4] = [np.inf, -np.inf, 0.0]  # opposite infinities must not cancel
+    np.testing.assert_array_equal(finite_rows(a, b), [True, False, False, False, False, True])
+    np.testing.assert_array_equal(finite_rows(b), [True, True, True, False, True, True])

@@ -33,6 +33,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from ..arrays import finite_rows
+
 if TYPE_CHECKING:  # pycolmap is imported lazily (keeps `sefm-recon --help` fast)
     import pycolmap
 
@@ -153,15 +155,13 @@ def write_two_view_model(
     if rgb.dtype != np.uint8:
         raise ValueError(f"rgb must be uint8, got {rgb.dtype}")
 
-    keep = np.flatnonzero(
-        np.isfinite(uv1).all(1) & np.isfinite(uv2).all(1) & np.isfinite(xyz).all(1)
-    )
+    keep = np.flatnonzero(finite_rows(uv1, uv2, xyz))
     if len(keep) < n:
         log.warning("dropping %d matches with non-finite values", n - len(keep))
     if max_points is not None and len(keep) > max_points:
         rng = np.random.default_rng(seed)
         keep = np.sort(rng.choice(keep, size=int(max_points), replace=False))
-    uv1, uv2, xyz, rgb = (np.ascontiguousarray(a[keep]) for a in (uv1, uv2, xyz, rgb))
+    uv1, uv2, xyz, rgb = (a.take(keep, axis=0) for a in (uv1, uv2, xyz, rgb))
 
     rec = _build_reconstruction(camera1, camera2, name1, name2, R, t, uv1, uv2, xyz, rgb)
 

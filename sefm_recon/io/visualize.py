@@ -14,6 +14,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from sefm_recon.arrays import finite_rows
 from sefm_recon.io.ply import atomic_path
 
 log = logging.getLogger(__name__)
@@ -105,8 +106,9 @@ def draw_matches(
     uv2 = np.asarray(uv2, dtype=np.float64).reshape(-1, 2)
     if len(uv1) != len(uv2):
         raise ValueError(f"uv1 and uv2 differ in length: {len(uv1)} vs {len(uv2)}")
-    ok = np.isfinite(uv1).all(1) & np.isfinite(uv2).all(1)
-    uv1, uv2 = uv1[ok], uv2[ok]
+    ok = finite_rows(uv1, uv2)
+    if not ok.all():
+        uv1, uv2 = uv1[ok], uv2[ok]
 
     s = min(1.0, max_width / float(a.shape[1] + b.shape[1]))
     a, b = _resize(a, s), _resize(b, s)

@@ -141,18 +141,13 @@ def sample_colors(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
     img = np.asarray(image)
     if img.ndim not in (2, 3):
         raise ValueError(f"image must be (H, W) or (H, W, C), got {img.shape}")
-    uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
-    h, w = img.shape[:2]
-    ok = np.isfinite(uv).all(axis=1)
-    y0, y1, x0, x1, fx, fy = bilinear_corners(h, w, np.where(ok[:, None], uv, 0.5))
-    if img.ndim == 3:
-        fx = fx[:, None]
-        fy = fy[:, None]
-    f = img.astype(np.float32, copy=False)
-    top = f[y0, x0] * (1 - fx) + f[y0, x1] * fx
-    bot = f[y1, x0] * (1 - fx) + f[y1, x1] * fx
-    out = top * (1 - fy) + bot * fy
-    out[~ok] = 0
+    uv = np.ascontiguousarray(uv, dtype=np.float64).reshape(-1, 2)
+    from .kernels import bilinear_sample
+
+    out = bilinear_sample(img if img.ndim == 3 else img[:, :, None], uv)
+    out[np.isnan(out)] = 0  # non-finite positions
+    if img.ndim == 2:
+        out = out[:, 0]
     if np.issubdtype(img.dtype, np.integer):
         info = np.iinfo(img.dtype)
         return np.clip(np.rint(out), info.min, info.max).astype(img.dtype)
