@@ -21,7 +21,7 @@ from pathlib import Path
 logger = logging.getLogger(__name__)
 
 #: Stages counted as "matching" for the SeFM/SGBM comparison: what replaces SGBM (coarse: the reduced-size level).
-MATCHING_STAGES = ("coarse", "line_pairs", "matching", "validity")
+MATCHING_STAGES = ("coarse", "line_pairs", "matching", "validity", "propagate")
 
 
 def reset_peak_memory() -> bool:

@@ -58,7 +58,7 @@ class PyramidConfig:
     min_size: int = 600  #: images with a longer side than this are matched at reduced size first (0 = never)
     factor: int = 4  #: size reduction from one level to the next (a 2000 px pair: 500 px, then 2000 px)
     radius: int = 2  #: coarse pixels around a sample whose depths bound its band
-    coarse_subpixel: bool = False  #: sub-pixel refinement, gap filling and the ZNCC test at the coarse levels too
+    coarse_subpixel: bool = False  #: sub-pixel refinement, gap filling, propagation and the ZNCC test at the coarse levels too
     fill_width: int = 12  #: unmatched samples whose coarse-bounded band is at most this wide are matched by ZNCC (0 = off)
 
 
@@ -82,6 +82,10 @@ class DenseConfig:
     fill_radius: int = 3  #: search this many samples around the interpolated partner
     fill_half_window: int = 3  #: ZNCC window half length (all neighbour-line channels)
     fill_min_zncc: float = 0.9  #: correlation a filled match needs
+    propagate_passes: int = 2  #: grow valid matches into unmatched neighbours this many times (0 = off)
+    propagate_radius: int = 1  #: px around a sample whose valid matches bound its band
+    propagate_width: int = 6  #: ...when that band is at most this many samples wide
+    propagate_min_zncc: float = 0.95  #: ZNCC a propagated match needs (fill_half_window)
 
 
 @dataclass
@@ -188,6 +192,10 @@ _LIMITS: dict[str, tuple[float | None, float | None, bool]] = {
     "sift.max_image_size": (0, None, False),
     "pyramid.min_size": (0, None, False),
     "pyramid.factor": (2, 16, False),
+    "dense.propagate_passes": (0, 16, False),
+    "dense.propagate_radius": (1, 16, False),
+    "dense.propagate_width": (1, 256, False),
+    "dense.propagate_min_zncc": (-1, 1, False),
     "pyramid.radius": (0, 16, False),
     "pyramid.fill_width": (0, 256, False),
     "dense.min_zncc": (-1, 1, False),

@@ -165,3 +165,22 @@ def test_galloping_search_equals_bisection_from_any_guess():
         guess = int(rng.integers(-3, n + 4))  # also outside [s, e]
         assert _gallop(a, s, e, v, guess, False) == _first_at_least(a, s, e, v)
         assert _gallop(a, s, e, v, guess, True) == _first_above(a, s, e, v)
+
+
+def test_depth_grids_add_points_in_place_as_if_all_at_once():
+    from sefm_recon.matching.sefm import depth_grids
+
+    rng = np.random.default_rng(2)
+    uv = rng.uniform(-1, 11, size=(300, 2))  # some outside the 8x10 grid
+    dist = rng.uniform(1, 5, size=300)
+    gmin, gmax = depth_grids(uv, dist, (8, 10))
+    grids = depth_grids(uv[:100], dist[:100], (8, 10))
+    depth_grids(uv[100:], dist[100:], (8, 10), grids)
+    np.testing.assert_array_equal(grids[0], gmin)
+    np.testing.assert_array_equal(grids[1], gmax)
+    r, c = 3, 4
+    inside = (np.floor(uv[:, 1]) == r) & (np.floor(uv[:, 0]) == c)
+    assert inside.any()
+    assert gmin[r, c] == np.float32(dist[inside].min()) and gmax[r, c] == np.float32(dist[inside].max())
+    empty = np.isinf(gmin)
+    assert np.all(np.isinf(gmax[empty])) and np.all(gmax[empty] < 0)

@@ -170,7 +170,7 @@ def _gallop(a, s, e, v, guess, strict):
 
 
 @njit(parallel=True, cache=True)
-def depth_band(a1, off1, a2, off2, dmin, dmax, baseline, slack):
+def depth_band(a1, off1, a2, off2, dmin, dmax, baseline, slack, need):
     """For each line-1 sample, the line-2 sample range holding points at distances [dmin, dmax].
 
     A point at distance ``d`` along the ray of angle ``a1`` is seen from camera 2
@@ -180,6 +180,8 @@ def depth_band(a1, off1, a2, off2, dmin, dmax, baseline, slack):
     Args:
         a1, a2: (N1,), (N2,) sample ray angles.
         dmin, dmax: (N1,) distance range per sample (``dmax`` may be inf).
+        need: (N1,) bool, the samples to find a band for; the others get an
+            empty one (``hi < lo``).
     Returns:
         lo, hi (N1,) int64 positions on line 2 relative to its start, widened
         by ``slack`` samples and clipped (``hi < lo`` when empty).
@@ -196,6 +198,10 @@ def depth_band(a1, off1, a2, off2, dmin, dmax, baseline, slack):
         ga = s2
         gb = s2
         for i in range(off1[l], off1[l + 1]):
+            if not need[i]:
+                lo[i] = 0
+                hi[i] = -1
+                continue
             sa = np.sin(a1[i])
             ca = np.cos(a1[i])
             hi_a = np.arctan2(dmin[i] * sa, dmin[i] * ca - baseline)
@@ -282,3 +288,23 @@ def lookup_depth_bounds(start, step, off, sx, sy, gmin, gmax, dmin0, dmax0):
                 dmin[i] = dmin0
                 dmax[i] = dmax0
     return dmin, dmax
+
+
+@njit(cache=True)
+def rasterise_min_max(uv, dist, gmin, gmax):
+    """Lower ``gmin`` and raise ``gmax`` (H, W) to each point's ``dist``, in place.
+
+    Point ``k`` falls in cell ``floor(uv[k])`` (COLMAP pixels of the grid's
+    image); points outside the grid are skipped. Fresh grids start at inf
+    and -inf.
+    """
+    height, width = gmin.shape
+    for k in range(uv.shape[0]):
+        c = int(np.floor(uv[k, 0]))
+        r = int(np.floor(uv[k, 1]))
+        if 0 <= r < height and 0 <= c < width:
+            d = np.float32(dist[k])
+            if d < gmin[r, c]:
+                gmin[r, c] = d
+            if d > gmax[r, c]:
+                gmax[r, c] = d

@@ -62,13 +62,15 @@ def sample_alphas(lp: LinePairs, tv: TwoView) -> tuple[np.ndarray, np.ndarray]:
 
 
 def search_band(lp: LinePairs, tv: TwoView, depths, slack: int,
-                alphas: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
+                alphas: tuple[np.ndarray, np.ndarray] | None = None,
+                need: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """For each line-1 sample, the line-2 sample range holding points at the given depths.
 
     ``depths`` is ``(dmin, dmax)``: distances from camera 1, scalars for the
     whole image or (N1,) arrays, one range per line-1 sample (from a coarser
     level). Returns ``lo, hi`` (N1,) int64 positions on line 2, relative to its
-    start, widened by ``slack`` samples.
+    start, widened by ``slack`` samples; only for the samples in ``need``
+    (default all), the others get an empty range (``hi < lo``).
     """
     from ..geometry.kernels import depth_band
 
@@ -76,8 +78,9 @@ def search_band(lp: LinePairs, tv: TwoView, depths, slack: int,
     n1 = len(a1)
     dmin = np.broadcast_to(np.asarray(depths[0], np.float64), (n1,))
     dmax = np.broadcast_to(np.asarray(depths[1], np.float64), (n1,))
+    need = np.ones(n1, bool) if need is None else np.ascontiguousarray(need, bool)
     return depth_band(a1, lp.offset1, a2, lp.offset2, np.ascontiguousarray(dmin), np.ascontiguousarray(dmax),
-                      float(np.linalg.norm(tv.t)), int(slack))
+                      float(np.linalg.norm(tv.t)), int(slack), need)
 
 
 def invert_band(lo: np.ndarray, hi: np.ndarray, off1: np.ndarray, off2: np.ndarray):
@@ -134,7 +137,8 @@ def coarse_level(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config) -
     tvc = dataclasses.replace(tv, K1=S1 @ tv.K1, K2=S2 @ tv.K2, kp1=tv.kp1 * [sx1, sy1], kp2=tv.kp2 * [sx2, sy2])
     ccfg = cfg
     if not p.coarse_subpixel:  # the coarse level only bounds the search: whole samples do
-        ccfg = dataclasses.replace(cfg, dense=dataclasses.replace(cfg.dense, subpixel=False, fill_max_gap=0))
+        ccfg = dataclasses.replace(cfg, dense=dataclasses.replace(cfg.dense, subpixel=False, fill_max_gap=0,
+                                                                  propagate_passes=0))
     try:
         dm = match_pair(c1, c2, tvc, ccfg)
     except InputError:
@@ -142,30 +146,47 @@ def coarse_level(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config) -
     return CoarseLevel(dm, (sx1, sy1), c1.shape[:2])
 
 
-def coarse_depth_bounds(lp: LinePairs, coarse: CoarseLevel, radius: int, depths: tuple[float, float]):
-    """Distance range (dmin, dmax) per line-1 sample from the coarse level's matches.
+def depth_grids(uv: np.ndarray, dist: np.ndarray, shape: tuple[int, int],
+                grids: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Smallest and largest distance of the points in each pixel, (height, width) float32 each.
 
-    Each sample's range is the smallest and largest distance the coarse level
-    found within ``radius`` coarse pixels of it (so an occlusion edge keeps
-    both sides, and an isolated coarse mismatch only widens it); samples
-    without a coarse match nearby keep the global ``depths``.
+    ``uv`` (N, 2) are COLMAP pixels of an image of ``shape``; pixels without a
+    point hold inf and -inf. With ``grids``, the points are added to them (in place).
+    """
+    from ..geometry.kernels import rasterise_min_max
+
+    if grids is None:
+        grids = (np.full(shape, np.inf, np.float32), np.full(shape, -np.inf, np.float32))
+    rasterise_min_max(np.ascontiguousarray(uv, np.float64), np.ascontiguousarray(dist, np.float64), *grids)
+    return grids
+
+
+def grid_depth_bounds(lp: LinePairs, grids: tuple[np.ndarray, np.ndarray], scale: tuple[float, float], radius: int,
+                      depths: tuple[float, float]):
+    """Distance range (dmin, dmax) per line-1 sample from :func:`depth_grids` around it.
+
+    The grids are of image 1 scaled by ``scale`` (sx, sy): a coarser level's,
+    or image 1 itself. Each sample's range is the smallest and largest
+    distance within ``radius`` pixels of the grid (so an occlusion edge keeps
+    both sides, and an isolated mismatch only widens it); samples with no
+    point nearby keep the global ``depths``.
     """
     from ..geometry.kernels import lookup_depth_bounds
 
-    dm, (sx, sy), shape = coarse
-    gmin = np.full(shape, np.inf, np.float32)
-    gmax = np.full(shape, -np.inf, np.float32)
-    if len(dm.uv1):
-        cols = np.clip(np.floor(dm.uv1[:, 0]).astype(np.int64), 0, shape[1] - 1)
-        rows = np.clip(np.floor(dm.uv1[:, 1]).astype(np.int64), 0, shape[0] - 1)
-        dist = np.linalg.norm(dm.xyz, axis=1).astype(np.float32)
-        np.minimum.at(gmin, (rows, cols), dist)
-        np.maximum.at(gmax, (rows, cols), dist)
+    gmin, gmax = grids
     if radius > 0:
         kernel = np.ones((2 * radius + 1, 2 * radius + 1), np.uint8)
         gmin = cv2.erode(gmin, kernel, borderType=cv2.BORDER_REPLICATE)
         gmax = cv2.dilate(gmax, kernel, borderType=cv2.BORDER_REPLICATE)
-    return lookup_depth_bounds(*lp.side(1), float(sx), float(sy), gmin, gmax, float(depths[0]), float(depths[1]))
+    return lookup_depth_bounds(*lp.side(1), float(scale[0]), float(scale[1]), gmin, gmax, float(depths[0]),
+                               float(depths[1]))
+
+
+def coarse_depth_bounds(lp: LinePairs, coarse: CoarseLevel, radius: int, depths: tuple[float, float]):
+    """Distance range (dmin, dmax) per line-1 sample from the coarse level's matches (see :func:`grid_depth_bounds`)."""
+    dm = coarse.matches
+    grids = depth_grids(dm.uv1, np.linalg.norm(dm.xyz, axis=1), coarse.shape)
+    return grid_depth_bounds(lp, grids, coarse.scale, radius, depths)
 
 
 def _match_direction(Ia, offa, Ib, offb, lo, hi, cfg: Config, bar=None):
@@ -201,6 +222,71 @@ def _prepare(image: np.ndarray, sigma: float, color: bool) -> np.ndarray:
     if sigma > 0:
         img = cv2.GaussianBlur(img, (0, 0), sigma)
     return img
+
+
+def _validated_points(j, cost, lp: LinePairs, tv: TwoView, shape: tuple[int, int], cfg: Config):
+    """Matched samples -> pixel pairs, points and the validity mask (S_p, then the 2-D check).
+
+    Returns ``idx, line, uv1, uv2, X, dist, keep`` over the matched samples
+    (see :func:`kernels.line_matches_to_points`).
+    """
+    Rt = np.ascontiguousarray(tv.R.T)
+    start1, step1, off1 = lp.side(1)
+    start2, step2, _ = lp.side(2)
+    v = cfg.validity
+    idx, line, uv1, uv2, X, dist, valid = kernels.line_matches_to_points(
+        j, cost, v.max_cost, start1, step1, off1, start2, step2, np.linalg.inv(tv.K1),
+        np.linalg.inv(tv.K2), Rt, -Rt @ np.asarray(tv.t, np.float64), np.radians(v.min_tri_angle_deg))
+    keep = depth_continuity(dist, line, v.sp_depth_jump, v.sp_min_run, mask=valid)
+    if v.neighbour_tol_px > 0:
+        # One pixel of disparity is about 1 / (f * B) in inverse depth.
+        scale = float(tv.K1[0, 0] * np.linalg.norm(tv.t))
+        keep = neighbour_consistency(uv1, scale / dist, shape, v.neighbour_radius, v.neighbour_tol_px,
+                                     v.neighbour_support, v.drop_isolated, mask=keep)
+    return idx, line, uv1, uv2, X, dist, keep
+
+
+def propagate(lp: LinePairs, tv: TwoView, I1, I2, j, idx, uv1, dist, keep, alphas, shape: tuple[int, int],
+              cfg: Config):
+    """Grow the valid matches into their unmatched neighbours (2-D, across line pairs).
+
+    Every sample without a valid match gets the depth range of the matches
+    within ``dense.propagate_radius`` pixels of it; where that range is at
+    most ``dense.propagate_width`` samples of line 2 wide, the partner is its
+    best ZNCC at ``dense.propagate_min_zncc`` or more (as the coarse-band
+    fill). Scanline DP leaves gaps where one line alone was ambiguous; the
+    lines beside it often matched there. Each of the ``dense.propagate_passes``
+    passes grows from the valid matches and the previous passes' new ones;
+    the caller validates the result once. Returns the new ``j`` (invalid
+    matches dropped, new ones added) and the mask of new ones.
+    """
+    d = cfg.dense
+    ki = np.flatnonzero(keep)
+    grids = depth_grids(uv1.take(ki, axis=0), dist.take(ki), shape)
+    sel = idx.take(ki)
+    jv = np.full_like(j, np.nan)
+    jv[sel] = j[sel]
+    new = np.zeros(len(j), bool)
+    start1, step1, off1 = lp.side(1)
+    start2, step2, _ = lp.side(2)
+    Rt = np.ascontiguousarray(tv.R.T)
+    nothing = np.zeros(len(j), np.float32)
+    for _ in range(d.propagate_passes):
+        depths = grid_depth_bounds(lp, grids, (1.0, 1.0), d.propagate_radius, (0.0, np.inf))
+        # One sample of slack: the neighbours' depths are fine-level ones.
+        lo, hi = search_band(lp, tv, depths, 1, alphas, need=np.isnan(jv) & np.isfinite(depths[1]))
+        jv, filled = kernels.fill_from_band(I1, off1, I2, lp.offset2, jv, lo, hi, d.propagate_width,
+                                            d.fill_half_window, d.propagate_min_zncc)
+        if not filled.any():
+            break
+        new |= filled
+        # The new matches' points seed the next pass.
+        jf = np.where(filled, jv, np.nan)
+        _, _, fuv1, _, _, fdist, fvalid = kernels.line_matches_to_points(
+            jf, nothing, 1.0, start1, step1, off1, start2, step2, np.linalg.inv(tv.K1), np.linalg.inv(tv.K2), Rt,
+            -Rt @ np.asarray(tv.t, np.float64), 0.0)
+        depth_grids(fuv1[fvalid], fdist[fvalid], shape, grids)
+    return jv, new
 
 
 def match_pair(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config, progress: bool = False) -> DenseMatches:
@@ -276,23 +362,20 @@ def match_pair(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config, pro
 
     t0 = time.perf_counter()
     dense = np.isfinite(j)
-    Rt = np.ascontiguousarray(tv.R.T)
-    start1, step1, _ = lp.side(1)
-    start2, step2, _ = lp.side(2)
-    idx, line, uv1, uv2, X, dist, valid = kernels.line_matches_to_points(
-        j, cost, cfg.validity.max_cost, start1, step1, off1, start2, step2, np.linalg.inv(tv.K1),
-        np.linalg.inv(tv.K2), Rt, -Rt @ np.asarray(tv.t, np.float64), np.radians(cfg.validity.min_tri_angle_deg))
-    keep = depth_continuity(dist, line, cfg.validity.sp_depth_jump, cfg.validity.sp_min_run, mask=valid)
-    if cfg.validity.neighbour_tol_px > 0:
-        # One pixel of disparity is about 1 / (f * B) in inverse depth.
-        scale = float(tv.K1[0, 0] * np.linalg.norm(tv.t))
-        keep = neighbour_consistency(uv1, scale / dist, img1.shape[:2], cfg.validity.neighbour_radius,
-                                     cfg.validity.neighbour_tol_px, cfg.validity.neighbour_support,
-                                     cfg.validity.drop_isolated, mask=keep)
+    idx, line, uv1, uv2, X, dist, keep = _validated_points(j, cost, lp, tv, img1.shape[:2], cfg)
+    timings["validity"] = time.perf_counter() - t0
+
+    n_propagated = 0
+    if cfg.dense.propagate_passes > 0:
+        t0 = time.perf_counter()
+        j, new = propagate(lp, tv, I1, I2, j, idx, uv1, dist, keep, alphas, img1.shape[:2], cfg)
+        cost[new] = 0.0
+        n_propagated = int(new.sum())
+        idx, line, uv1, uv2, X, dist, keep = _validated_points(j, cost, lp, tv, img1.shape[:2], cfg)
+        timings["propagate"] = time.perf_counter() - t0
     # Index arrays gather rows several times faster than boolean masks.
     ki = np.flatnonzero(keep)
     score = (1.0 / (1.0 + cost[idx.take(ki)] / 8.0)).astype(np.float32)
-    timings["validity"] = time.perf_counter() - t0
     counts = {
         "line_pairs": int(len(lp)),
         "samples": int(len(I1)),
@@ -302,6 +385,7 @@ def match_pair(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config, pro
         "valid_segments": int(stats[:, 3].sum()),
         "dense_matches": n_dense,
         "consistent_matches": int(dense.sum()),
+        "propagated_matches": n_propagated,
         "valid_matches": int(len(ki)),
     }
     logger.info(
