@@ -25,7 +25,14 @@ MATCHING_STAGES = ("coarse", "line_pairs", "matching", "validity", "propagate")
 
 
 def reset_peak_memory() -> bool:
-    """Reset the kernel's peak-RSS counter of this process (Linux); False where unsupported."""
+    """Reset the kernel's peak-RSS counter of this process (Linux); False where unsupported.
+
+    Freed memory the allocator keeps for reuse (see :mod:`sefm_recon.memory`)
+    is returned first, so the next method's peak is its own.
+    """
+    from .memory import release_freed_memory
+
+    release_freed_memory()
     try:
         with open("/proc/self/clear_refs", "w") as f:
             f.write("5")

@@ -233,6 +233,9 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     _setup_logging(args.quiet, args.verbose)
     _terminate_as_interrupt()
+    from .memory import keep_freed_memory
+
+    keep_freed_memory()
     try:
         return {"pair": _cmd_pair, "colmap": _cmd_colmap, "eval": _cmd_eval, "bench": _cmd_bench}[args.command](args)
     except InputError as err:

@@ -134,3 +134,26 @@ def test_help_lists_the_pair_command():
     assert r.returncode == 0 and "pair" in r.stdout
     r = run_cli("pair", "--help")
     assert "--camera" in r.stdout and "--overwrite" in r.stdout
+
+
+def test_allocator_settings_respect_the_users_own(monkeypatch):
+    from sefm_recon import memory
+
+    monkeypatch.setenv("MALLOC_ARENA_MAX", "2")
+    assert memory.keep_freed_memory() is False  # the user's MALLOC_* settings win
+    monkeypatch.delenv("MALLOC_ARENA_MAX")
+    monkeypatch.setattr(memory.sys, "platform", "darwin")
+    assert memory.keep_freed_memory() is False
+
+
+def test_allocator_settings_apply_on_glibc():
+    import os
+    import platform
+
+    from sefm_recon import memory
+
+    if not sys.platform.startswith("linux") or platform.libc_ver()[0] != "glibc" or \
+            "GLIBC_TUNABLES" in os.environ or any(k.startswith("MALLOC_") for k in os.environ):
+        pytest.skip("needs glibc without user allocator settings")
+    assert memory.keep_freed_memory() is True
+    memory.release_freed_memory()  # and back, harmlessly

@@ -174,8 +174,8 @@ def test_depth_grids_add_points_in_place_as_if_all_at_once():
     uv = rng.uniform(-1, 11, size=(300, 2))  # some outside the 8x10 grid
     dist = rng.uniform(1, 5, size=300)
     gmin, gmax = depth_grids(uv, dist, (8, 10))
-    grids = depth_grids(uv[:100], dist[:100], (8, 10))
-    depth_grids(uv[100:], dist[100:], (8, 10), grids)
+    grids = depth_grids(uv, dist, (8, 10), np.arange(300) < 100)
+    depth_grids(uv[100:], dist[100:], (8, 10), grids=grids)
     np.testing.assert_array_equal(grids[0], gmin)
     np.testing.assert_array_equal(grids[1], gmax)
     r, c = 3, 4

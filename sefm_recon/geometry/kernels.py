@@ -291,8 +291,8 @@ def lookup_depth_bounds(start, step, off, sx, sy, gmin, gmax, dmin0, dmax0):
 
 
 @njit(cache=True)
-def rasterise_min_max(uv, dist, gmin, gmax):
-    """Lower ``gmin`` and raise ``gmax`` (H, W) to each point's ``dist``, in place.
+def rasterise_min_max(uv, dist, mask, gmin, gmax):
+    """Lower ``gmin`` and raise ``gmax`` (H, W) to the ``dist`` of each point in ``mask``, in place.
 
     Point ``k`` falls in cell ``floor(uv[k])`` (COLMAP pixels of the grid's
     image); points outside the grid are skipped. Fresh grids start at inf
@@ -300,6 +300,8 @@ def rasterise_min_max(uv, dist, gmin, gmax):
     """
     height, width = gmin.shape
     for k in range(uv.shape[0]):
+        if not mask[k]:
+            continue
         c = int(np.floor(uv[k, 0]))
         r = int(np.floor(uv[k, 1]))
         if 0 <= r < height and 0 <= c < width:

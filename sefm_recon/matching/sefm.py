@@ -146,18 +146,20 @@ def coarse_level(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config) -
     return CoarseLevel(dm, (sx1, sy1), c1.shape[:2])
 
 
-def depth_grids(uv: np.ndarray, dist: np.ndarray, shape: tuple[int, int],
+def depth_grids(uv: np.ndarray, dist: np.ndarray, shape: tuple[int, int], mask: np.ndarray | None = None,
                 grids: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Smallest and largest distance of the points in each pixel, (height, width) float32 each.
 
-    ``uv`` (N, 2) are COLMAP pixels of an image of ``shape``; pixels without a
-    point hold inf and -inf. With ``grids``, the points are added to them (in place).
+    ``uv`` (N, 2) are COLMAP pixels of an image of ``shape``; only the points
+    in ``mask`` (default all) count; pixels without a point hold inf and -inf.
+    With ``grids``, the points are added to them (in place).
     """
     from ..geometry.kernels import rasterise_min_max
 
     if grids is None:
         grids = (np.full(shape, np.inf, np.float32), np.full(shape, -np.inf, np.float32))
-    rasterise_min_max(np.ascontiguousarray(uv, np.float64), np.ascontiguousarray(dist, np.float64), *grids)
+    mask = np.ones(len(uv), bool) if mask is None else np.ascontiguousarray(mask, bool)
+    rasterise_min_max(np.ascontiguousarray(uv, np.float64), np.ascontiguousarray(dist, np.float64), mask, *grids)
     return grids
 
 
@@ -262,7 +264,7 @@ def propagate(lp: LinePairs, tv: TwoView, I1, I2, j, idx, uv1, dist, keep, alpha
     """
     d = cfg.dense
     ki = np.flatnonzero(keep)
-    grids = depth_grids(uv1.take(ki, axis=0), dist.take(ki), shape)
+    grids = depth_grids(uv1, dist, shape, keep)
     sel = idx.take(ki)
     jv = np.full_like(j, np.nan)
     jv[sel] = j[sel]
@@ -285,7 +287,7 @@ def propagate(lp: LinePairs, tv: TwoView, I1, I2, j, idx, uv1, dist, keep, alpha
         _, _, fuv1, _, _, fdist, fvalid = kernels.line_matches_to_points(
             jf, nothing, 1.0, start1, step1, off1, start2, step2, np.linalg.inv(tv.K1), np.linalg.inv(tv.K2), Rt,
             -Rt @ np.asarray(tv.t, np.float64), 0.0)
-        depth_grids(fuv1[fvalid], fdist[fvalid], shape, grids)
+        depth_grids(fuv1, fdist, shape, fvalid, grids)
     return jv, new
 
 
