@@ -289,3 +289,16 @@ def test_finite_rows_flags_any_non_finite_entry():
     a[4] = [np.inf, -np.inf, 0.0]  # opposite infinities must not cancel
     np.testing.assert_array_equal(finite_rows(a, b), [True, False, False, False, False, True])
     np.testing.assert_array_equal(finite_rows(b), [True, True, True, False, True, True])
+
+
+def test_sample_colors_equal_the_corner_weights_everywhere():
+    from sefm_recon.reconstruct.points import bilinear_corners
+
+    rng = np.random.default_rng(3)
+    img = rng.integers(0, 256, size=(7, 9, 3)).astype(np.uint8)
+    uv = rng.uniform([-3, -3], [12, 10], size=(500, 2))  # inside, on the border and outside
+    y0, y1, x0, x1, fx, fy = bilinear_corners(7, 9, uv)
+    f = img.astype(np.float64)
+    fx, fy = fx[:, None], fy[:, None]
+    want = (f[y0, x0] * (1 - fx) + f[y0, x1] * fx) * (1 - fy) + (f[y1, x0] * (1 - fx) + f[y1, x1] * fx) * fy
+    np.testing.assert_allclose(sample_colors(img.astype(np.float32), uv), want, atol=1e-4)

@@ -42,7 +42,7 @@ def line_alphas(start, step, off, Minv, basis):
 
 
 @njit(cache=True)
-def _bilinear(img, x, y, out, row, col0):
+def bilinear(img, x, y, out, row, col0):
     """Bilinear sample of img (H, W, C) at COLMAP position (x, y), border replicated."""
     H, W, C = img.shape
     px = x - 0.5
@@ -101,17 +101,17 @@ def sample_line_channels(img, start, step, off, phi, offsets, basis, Minv, M):
             rp = np.sqrt(max(0.0, r0 * r0 + r1 * r1 + r2 * r2 - rb * rb))  # length normal to b
             for o in range(O):
                 if offsets[o] == 0.0:
-                    _bilinear(img, x0, y0, out, base + k, o * C)
+                    bilinear(img, x0, y0, out, base + k, o * C)
                     continue
                 d0 = rb * basis[0, 0] + rp * m[o, 0]
                 d1 = rb * basis[0, 1] + rp * m[o, 1]
                 d2 = rb * basis[0, 2] + rp * m[o, 2]
                 z = M[2, 0] * d0 + M[2, 1] * d1 + M[2, 2] * d2
                 if z > 0:
-                    _bilinear(img, (M[0, 0] * d0 + M[0, 1] * d1 + M[0, 2] * d2) / z,
+                    bilinear(img, (M[0, 0] * d0 + M[0, 1] * d1 + M[0, 2] * d2) / z,
                               (M[1, 0] * d0 + M[1, 1] * d1 + M[1, 2] * d2) / z, out, base + k, o * C)
                 else:
-                    _bilinear(img, x0, y0, out, base + k, o * C)
+                    bilinear(img, x0, y0, out, base + k, o * C)
     return out
 
 

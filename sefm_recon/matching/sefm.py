@@ -226,19 +226,23 @@ def _prepare(image: np.ndarray, sigma: float, color: bool) -> np.ndarray:
     return img
 
 
+def _line_points(j, cost, max_cost: float, min_angle: float, lp: LinePairs, tv: TwoView):
+    """:func:`kernels.line_matches_to_points` with this pair's line geometry and cameras (``min_angle`` radians)."""
+    Rt = np.ascontiguousarray(tv.R.T)
+    start1, step1, off1 = lp.side(1)
+    start2, step2, _ = lp.side(2)
+    return kernels.line_matches_to_points(j, cost, max_cost, start1, step1, off1, start2, step2, np.linalg.inv(tv.K1),
+                                          np.linalg.inv(tv.K2), Rt, -Rt @ np.asarray(tv.t, np.float64), min_angle)
+
+
 def _validated_points(j, cost, lp: LinePairs, tv: TwoView, shape: tuple[int, int], cfg: Config):
     """Matched samples -> pixel pairs, points and the validity mask (S_p, then the 2-D check).
 
     Returns ``idx, line, uv1, uv2, X, dist, keep`` over the matched samples
     (see :func:`kernels.line_matches_to_points`).
     """
-    Rt = np.ascontiguousarray(tv.R.T)
-    start1, step1, off1 = lp.side(1)
-    start2, step2, _ = lp.side(2)
     v = cfg.validity
-    idx, line, uv1, uv2, X, dist, valid = kernels.line_matches_to_points(
-        j, cost, v.max_cost, start1, step1, off1, start2, step2, np.linalg.inv(tv.K1),
-        np.linalg.inv(tv.K2), Rt, -Rt @ np.asarray(tv.t, np.float64), np.radians(v.min_tri_angle_deg))
+    idx, line, uv1, uv2, X, dist, valid = _line_points(j, cost, v.max_cost, np.radians(v.min_tri_angle_deg), lp, tv)
     keep = depth_continuity(dist, line, v.sp_depth_jump, v.sp_min_run, mask=valid)
     if v.neighbour_tol_px > 0:
         # One pixel of disparity is about 1 / (f * B) in inverse depth.
@@ -268,24 +272,19 @@ def propagate(lp: LinePairs, tv: TwoView, I1, I2, j, idx, uv1, dist, keep, alpha
     valid[idx[keep]] = True
     jv = np.where(valid, j, np.nan)  # one pass; a NaN fill and a scatter cost 5x more here
     new = np.zeros(len(j), bool)
-    start1, step1, off1 = lp.side(1)
-    start2, step2, _ = lp.side(2)
-    Rt = np.ascontiguousarray(tv.R.T)
     nothing = np.zeros(len(j), np.float32)
     for _ in range(d.propagate_passes):
         depths = grid_depth_bounds(lp, grids, (1.0, 1.0), d.propagate_radius, (0.0, np.inf))
         # One sample of slack: the neighbours' depths are fine-level ones.
         lo, hi = search_band(lp, tv, depths, 1, alphas, need=np.isnan(jv) & np.isfinite(depths[1]))
-        jv, filled = kernels.fill_from_band(I1, off1, I2, lp.offset2, jv, lo, hi, d.propagate_width,
+        jv, filled = kernels.fill_from_band(I1, lp.offset1, I2, lp.offset2, jv, lo, hi, d.propagate_width,
                                             d.fill_half_window, d.propagate_min_zncc)
         if not filled.any():
             break
         new |= filled
         # The new matches' points seed the next pass.
         jf = np.where(filled, jv, np.nan)
-        _, _, fuv1, _, _, fdist, fvalid = kernels.line_matches_to_points(
-            jf, nothing, 1.0, start1, step1, off1, start2, step2, np.linalg.inv(tv.K1), np.linalg.inv(tv.K2), Rt,
-            -Rt @ np.asarray(tv.t, np.float64), 0.0)
+        _, _, fuv1, _, _, fdist, fvalid = _line_points(jf, nothing, 1.0, 0.0, lp, tv)
         depth_grids(fuv1, fdist, shape, fvalid, grids)
     return jv, new
 

@@ -5,6 +5,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
+from ..geometry.kernels import bilinear
+
 
 @njit(cache=True)
 def _neighbour(index, r, c, h, w):
@@ -73,30 +75,18 @@ def grid_normals(xyz, r, c, h, w, step):
 def bilinear_sample(img, uv):
     """Bilinear samples (N, C) float32 of ``img`` (H, W, C) at COLMAP positions ``uv`` (N, 2).
 
-    The same corners and weights as :func:`sefm_recon.reconstruct.points.bilinear_corners`
-    (positions clamped to the pixel centres); NaN where ``uv`` is not finite.
+    Border replicated (:func:`sefm_recon.geometry.kernels.bilinear`, the line
+    sampler's; the same values as :func:`sefm_recon.reconstruct.points.bilinear_corners`
+    gives); NaN where ``uv`` is not finite.
     """
-    h, w, C = img.shape
+    C = img.shape[2]
     n = uv.shape[0]
     out = np.empty((n, C), np.float32)
     for kk in prange(n):
         k = np.int64(kk)
-        u = uv[k, 0]
-        v = uv[k, 1]
-        if not (np.isfinite(u) and np.isfinite(v)):
+        if np.isfinite(uv[k, 0]) and np.isfinite(uv[k, 1]):
+            bilinear(img, uv[k, 0], uv[k, 1], out, k, 0)
+        else:
             for ch in range(C):
                 out[k, ch] = np.nan
-            continue
-        x = min(max(u - 0.5, 0.0), w - 1.0)
-        y = min(max(v - 0.5, 0.0), h - 1.0)
-        j0 = min(int(np.floor(x)), max(w - 2, 0))
-        i0 = min(int(np.floor(y)), max(h - 2, 0))
-        j1 = min(j0 + 1, w - 1)
-        i1 = min(i0 + 1, h - 1)
-        fx = x - j0
-        fy = y - i0
-        for ch in range(C):
-            top = img[i0, j0, ch] * (1.0 - fx) + img[i0, j1, ch] * fx
-            bot = img[i1, j0, ch] * (1.0 - fx) + img[i1, j1, ch] * fx
-            out[k, ch] = top * (1.0 - fy) + bot * fy
     return out
