@@ -45,6 +45,8 @@ class LinesConfig:
 @dataclass
 class RoughConfig:
     jump_threshold: float = 2.0  #: da_i above this (0-255 intensity) makes a key point
+    #: images with a longer side than this get ``jump_threshold`` scaled by size / side (0 = never)
+    jump_reference_size: int = 1000
     descriptor_radius: int = 8  #: half width of the FFT window, samples
     descriptor_coefficients: int = 6  #: Fourier coefficients kept (beyond DC)
     max_descriptor_distance: float = 0.8  #: pairs farther apart never match
@@ -212,6 +214,7 @@ _LIMITS: dict[str, tuple[float | None, float | None, bool]] = {
     "lines.neighbours": (0, 8, False),
     "lines.neighbour_step": (0, None, True),
     "rough.jump_threshold": (0, None, False),
+    "rough.jump_reference_size": (0, None, False),
     "rough.descriptor_radius": (1, 64, False),
     "rough.descriptor_coefficients": (1, 64, False),
     "rough.max_descriptor_distance": (0, None, True),

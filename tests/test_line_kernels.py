@@ -134,6 +134,60 @@ def test_three_zncc_in_one_pass_equal_three_single_ones(jpos):
     np.testing.assert_allclose(got, want, atol=1e-9)
 
 
+def _zncc_ref(a, i, b, jpos, s_lo, s_hi):
+    """ZNCC over window offsets s_lo..s_hi, b linearly interpolated at jpos + s (numpy reference)."""
+    s = np.arange(s_lo, s_hi + 1)
+    x = a[i + s].ravel().astype(float)
+    j0 = int(np.floor(jpos))
+    f = jpos - j0
+    y = ((1 - f) * b[j0 + s] + f * b[np.minimum(j0 + s + 1, len(b) - 1)]).ravel().astype(float)
+    x -= x.mean()
+    y -= y.mean()
+    return float(x @ y / np.sqrt((x @ x) * (y @ y)))
+
+
+@pytest.mark.parametrize("i, jpos, s_lo, s_hi", [
+    (2, 20.3, -2, 5),    # window cut at the start of line 1
+    (25, 1.4, 0, 5),     # at the start of line 2 (jpos - 1 + s >= 0)
+    (25, 55.6, -5, 2),   # at the end of line 2 (jpos + 1 + s < 59)
+])
+def test_zncc_near_line_ends_uses_the_cut_window(i, jpos, s_lo, s_hi):
+    rng = np.random.default_rng(3)
+    a = rng.normal(size=(60, 3)).astype(np.float32)
+    b = rng.normal(size=(60, 3)).astype(np.float32)
+    got = mk._zncc3(a, i, b, jpos, 5)
+    want = [_zncc_ref(a, i, b, jpos + d, s_lo, s_hi) for d in (-1.0, 0.0, 1.0)]
+    np.testing.assert_allclose(got, want, atol=1e-6)
+
+
+def test_zncc_window_too_short_near_a_line_end_is_rejected():
+    rng = np.random.default_rng(4)
+    a = rng.normal(size=(60, 2)).astype(np.float32)
+    b = rng.normal(size=(60, 2)).astype(np.float32)
+    # fewer than half + 1 = 6 samples fit: i = 59 leaves offsets -5..0, but line 2 ends at jpos + 0
+    assert mk._zncc3(a, 59, b, 59.0, 5)[1] == -2.0
+    assert mk._zncc(a, 59, b, 59.0, 5) == -2.0  # single ZNCC (search, fill) needs the whole window
+    assert mk._zncc(a, 0, b, 30.0, 5) == -2.0
+    assert mk._zncc(a, 30, b, 30.0, 5) > -2.0
+
+
+def test_refine_subpixel_refines_and_scores_samples_at_the_line_ends():
+    # line 2 is line 1 shifted by 3.4 samples of a smooth signal
+    n = 80
+    x = np.arange(n + 10, dtype=float)
+    sig = lambda t: np.stack([np.sin(0.35 * t) + 0.5 * np.sin(0.11 * t + 1), np.cos(0.23 * t)], 1)
+    a = sig(x[:n]).astype(np.float32)
+    b = sig(x[:n + 6] - 3.4).astype(np.float32)  # b[k] = a at k - 3.4: a[i] sits at j = i + 3.4
+    off1 = np.array([0, n], np.int64)
+    off2 = np.array([0, n + 6], np.int64)
+    j = np.arange(n, dtype=float) + 3.0  # the DP's whole-sample answer
+    out, zncc = mk.refine_subpixel(a, off1, b, off2, j, 7, 1.0)
+    for i in (0, 1, n - 2):  # the full 15-sample window does not fit at any of these
+        assert zncc[i] > 0.95
+        assert abs(out[i] - (i + 3.4)) < 0.15  # from 0.4 off (the parabola is not exact)
+    assert abs(out[40] - 43.4) < 0.05
+
+
 def test_fill_from_band_finds_the_shift_inside_a_narrow_band():
     rng = np.random.default_rng(2)
     n = 200

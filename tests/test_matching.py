@@ -107,3 +107,29 @@ def test_depth_continuity_drops_spikes_but_keeps_steps():
     # a run made short by the mask is dropped
     np.testing.assert_array_equal(depth_continuity(np.ones(4), np.zeros(4, np.int64), 0.05, 3,
                                                    mask=np.array([True, False, True, False])), [False] * 4)
+
+
+def test_jump_threshold_shrinks_with_the_photo_size_and_coarse_levels_keep_it(monkeypatch):
+    import dataclasses
+
+    from sefm_recon.config import load_config
+    from sefm_recon.geometry.two_view import TwoView
+    from sefm_recon.matching import sefm
+
+    cfg = load_config(None, [])
+    assert cfg.rough.jump_reference_size == 1000
+    assert sefm.jump_threshold(cfg, 800) == sefm.jump_threshold(cfg, 1000) == cfg.rough.jump_threshold
+    assert sefm.jump_threshold(cfg, 2000) == cfg.rough.jump_threshold / 2
+    off = dataclasses.replace(cfg, rough=dataclasses.replace(cfg.rough, jump_reference_size=0))
+    assert sefm.jump_threshold(off, 4000) == cfg.rough.jump_threshold
+
+    seen = []
+    monkeypatch.setattr(sefm, "match_pair", lambda c1, c2, tv, ccfg: seen.append((c1.shape, ccfg.rough)) or None)
+    K = np.array([[1500.0, 0, 1000], [0, 1500, 750], [0, 0, 1]])
+    tv = TwoView(K, K, np.eye(3), np.array([-1.0, 0, 0]))
+    img = np.zeros((1500, 2000, 3), np.uint8)
+    sefm.coarse_level(img, img, tv, cfg)
+    (shape, rough_cfg), = seen
+    assert shape[:2] == (375, 500)
+    # the 500 px level matches with the 2000 px photo's threshold, not its own
+    assert rough_cfg.jump_threshold == cfg.rough.jump_threshold / 2 and rough_cfg.jump_reference_size == 0

@@ -135,10 +135,13 @@ def coarse_level(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config) -
     S1 = np.diag([sx1, sy1, 1.0])
     S2 = np.diag([sx2, sy2, 1.0])
     tvc = dataclasses.replace(tv, K1=S1 @ tv.K1, K2=S2 @ tv.K2, kp1=tv.kp1 * [sx1, sy1], kp2=tv.kp2 * [sx2, sy2])
-    ccfg = cfg
+    # The key-point threshold is the photo's (see jump_threshold), not the reduced image's:
+    # measured, the coarse level then finds low-contrast surfaces the fine level needs.
+    ccfg = dataclasses.replace(cfg, rough=dataclasses.replace(cfg.rough, jump_threshold=jump_threshold(cfg, longest),
+                                                              jump_reference_size=0))
     if not p.coarse_subpixel:  # the coarse level only bounds the search: whole samples do
-        ccfg = dataclasses.replace(cfg, dense=dataclasses.replace(cfg.dense, subpixel=False, fill_max_gap=0,
-                                                                  propagate_passes=0))
+        ccfg = dataclasses.replace(ccfg, dense=dataclasses.replace(cfg.dense, subpixel=False, fill_max_gap=0,
+                                                                   propagate_passes=0))
     try:
         dm = match_pair(c1, c2, tvc, ccfg)
     except InputError:
@@ -191,7 +194,20 @@ def coarse_depth_bounds(lp: LinePairs, coarse: CoarseLevel, radius: int, depths:
     return grid_depth_bounds(lp, grids, coarse.scale, radius, depths)
 
 
-def _match_direction(Ia, offa, Ib, offb, lo, hi, cfg: Config, bar=None):
+def jump_threshold(cfg: Config, longest: int) -> float:
+    """The key-point threshold on ``da_i`` for images whose longer side is ``longest`` pixels.
+
+    A photo of the same object at twice the resolution has half the intensity
+    step per sample, so above ``rough.jump_reference_size`` the threshold
+    shrinks with the size; the key points stay the same features of the scene.
+    """
+    r = cfg.rough
+    if r.jump_reference_size > 0 and longest > r.jump_reference_size:
+        return r.jump_threshold * r.jump_reference_size / longest
+    return r.jump_threshold
+
+
+def _match_direction(Ia, offa, Ib, offb, lo, hi, cfg: Config, jump: float, bar=None):
     """Run the line kernel over all line pairs, in chunks (for the progress bar)."""
     n = len(offa) - 1
     j = np.full(len(Ia), np.nan)
@@ -206,7 +222,7 @@ def _match_direction(Ia, offa, Ib, offb, lo, hi, cfg: Config, bar=None):
         s1, e1, s2, e2 = offa[a], offa[b], offb[a], offb[b]
         rj, rc, ra, rs = kernels.match_lines(
             Ia[s1:e1], offa[a:b + 1] - s1, Ib[s2:e2], offb[a:b + 1] - s2, lo[s1:e1], hi[s1:e1],
-            cfg.rough.jump_threshold, cfg.rough.descriptor_radius, cfg.rough.descriptor_coefficients,
+            jump, cfg.rough.descriptor_radius, cfg.rough.descriptor_coefficients,
             cfg.rough.max_descriptor_distance, cfg.validity.sv_max_unmatched, cfg.validity.sv_strength,
             cfg.dense.occlusion_penalty, cfg.dense.band_fraction, cfg.dense.band_min, cfg.dense.band_max,
             cfg.dense.occlusion_run, cfg.dense.open_ends,
@@ -336,11 +352,12 @@ def match_pair(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config, pro
 
         bar = tqdm(total=len(lp) * (2 if both else 1), desc="matching line pairs",
                    unit="line", leave=False)
-    j, cost, anchor, stats = _match_direction(I1, off1, I2, off2, lo, hi, cfg, bar)
+    jump = jump_threshold(cfg, max(size1 + size2))
+    j, cost, anchor, stats = _match_direction(I1, off1, I2, off2, lo, hi, cfg, jump, bar)
     n_dense = int(np.isfinite(j).sum())
     if both:
         lo21, hi21 = invert_band(lo, hi, off1, off2)
-        i21, _, _, _ = _match_direction(I2, off2, I1, off1, lo21, hi21, cfg, bar)
+        i21, _, _, _ = _match_direction(I2, off2, I1, off1, lo21, hi21, cfg, jump, bar)
         j = consistent(j, i21, off1, off2, lp.count2, cfg.dense.consistency_px)
     if cfg.dense.fill_max_gap > 0:
         j, filled = kernels.fill_gaps(I1, off1, I2, off2, j, cfg.dense.fill_max_gap, cfg.dense.fill_radius,
