@@ -1,5 +1,6 @@
 """The per-line numba kernels against plain numpy references, and the coarse-to-fine band."""
 
+import cv2
 import numpy as np
 import pytest
 
@@ -204,6 +205,34 @@ def test_fill_from_band_finds_the_shift_inside_a_narrow_band():
     assert filled[inner].all() and not filled[:20].any()
     # the best whole shift, then a parabola (white noise has no smooth peak: within half a sample)
     np.testing.assert_array_equal(np.rint(out[inner]), inner + 4.0)
+
+
+def test_propagation_pass_equals_bounds_then_band_then_fill():
+    """The fused pass gives what its three steps give one after another."""
+    from sefm_recon.matching.sefm import _widen, grid_depth_bounds
+
+    R, t, lp = _lp()
+    tv = TwoView(K, K, R, t)
+    alphas = line_alphas(lp, K, np.eye(3), 1), line_alphas(lp, K, R.T, 2)
+    rng = np.random.default_rng(5)
+    img = cv2.GaussianBlur(rng.uniform(0, 255, (SIZE[1], SIZE[0])).astype(np.float32), (0, 0), 2.0)
+    I1 = sample_line_channels(img, lp, K, np.eye(3), 1, neighbours=1)
+    I2 = sample_line_channels(img, lp, K, R.T, 2, neighbours=1)
+    # depths known on a third of the pixels, every sample unmatched but a few
+    gmin = np.where(rng.random((SIZE[1], SIZE[0])) < 0.3, rng.uniform(2, 6, (SIZE[1], SIZE[0])), np.inf)
+    gmin = gmin.astype(np.float32)
+    gmax = np.where(np.isfinite(gmin), gmin * 1.02, -np.inf).astype(np.float32)
+    j = np.where(rng.random(len(I1)) < 0.1, 5.0, np.nan)
+    wmin, wmax = _widen((gmin, gmax), 1)
+    start1, step1, _ = lp.side(1)
+    got, filled = mk.propagate_pass(I1, lp.offset1, I2, lp.offset2, j, start1, step1, *alphas, wmin, wmax,
+                                    float(np.linalg.norm(t)), 1, 6, 3, 0.5)
+    depths = grid_depth_bounds(lp, (gmin, gmax), (1.0, 1.0), 1, (0.0, np.inf))
+    lo, hi = search_band(lp, tv, depths, 1, alphas, need=np.isnan(j) & np.isfinite(depths[1]))
+    want, wfilled = mk.fill_from_band(I1, lp.offset1, I2, lp.offset2, j, lo, hi, 6, 3, 0.5)
+    assert wfilled.sum() > 1000
+    np.testing.assert_array_equal(filled, wfilled)
+    np.testing.assert_array_equal(got, want)
 
 
 def test_galloping_search_equals_bisection_from_any_guess():

@@ -169,6 +169,29 @@ def _gallop(a, s, e, v, guess, strict):
     return _first_at_least(a, lo, hi, v)
 
 
+@njit(cache=True)
+def sample_band(alpha1, a2, s2, e2, dmin, dmax, baseline, slack, ga, gb):
+    """Line-2 band of one line-1 sample of ray angle ``alpha1`` (see :func:`depth_band`).
+
+    ``a2[s2:e2]`` is line 2; ``ga``, ``gb`` are the previous sample's search
+    answers (absolute indices), where the search starts. Returns ``lo, hi,
+    ga, gb``.
+    """
+    sa = np.sin(alpha1)
+    ca = np.cos(alpha1)
+    hi_a = np.arctan2(dmin * sa, dmin * ca - baseline)
+    if np.isfinite(dmax):
+        lo_a = np.arctan2(dmax * sa, dmax * ca - baseline)
+    else:
+        lo_a = alpha1
+    ga = _gallop(a2, s2, e2, lo_a, ga, False)
+    gb = _gallop(a2, s2, e2, hi_a, gb, True)
+    n2 = e2 - s2
+    a = ga - s2 - slack
+    b = gb - 1 - s2 + slack  # last index with a2 <= hi_a
+    return min(max(a, 0), n2 - 1), min(max(b, -1), n2 - 1), ga, gb
+
+
 @njit(parallel=True, cache=True)
 def depth_band(a1, off1, a2, off2, dmin, dmax, baseline, slack, need):
     """For each line-1 sample, the line-2 sample range holding points at distances [dmin, dmax].
@@ -194,7 +217,6 @@ def depth_band(a1, off1, a2, off2, dmin, dmax, baseline, slack, need):
         l = np.int64(ll)
         s2 = off2[l]
         e2 = off2[l + 1]
-        n2 = e2 - s2
         ga = s2
         gb = s2
         for i in range(off1[l], off1[l + 1]):
@@ -202,19 +224,7 @@ def depth_band(a1, off1, a2, off2, dmin, dmax, baseline, slack, need):
                 lo[i] = 0
                 hi[i] = -1
                 continue
-            sa = np.sin(a1[i])
-            ca = np.cos(a1[i])
-            hi_a = np.arctan2(dmin[i] * sa, dmin[i] * ca - baseline)
-            if np.isfinite(dmax[i]):
-                lo_a = np.arctan2(dmax[i] * sa, dmax[i] * ca - baseline)
-            else:
-                lo_a = a1[i]
-            ga = _gallop(a2, s2, e2, lo_a, ga, False)
-            gb = _gallop(a2, s2, e2, hi_a, gb, True)
-            a = ga - s2 - slack
-            b = gb - 1 - s2 + slack  # last index with a2 <= hi_a
-            lo[i] = min(max(a, 0), n2 - 1)
-            hi[i] = min(max(b, -1), n2 - 1)
+            lo[i], hi[i], ga, gb = sample_band(a1[i], a2, s2, e2, dmin[i], dmax[i], baseline, slack, ga, gb)
     return lo, hi
 
 

@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from ..geometry.kernels import pixel_ray
+from ..geometry.kernels import pixel_ray, sample_band
 
 # Back-pointer codes of the DP tables.
 _DIAG, _UP, _LEFT = 0, 1, 2
@@ -951,6 +951,51 @@ def fill_from_band(I1, off1, I2, off2, j, lo, hi, max_width, half, min_zncc):
                 continue
             out[s1 + i] = pos
             filled[s1 + i] = True
+    return out, filled
+
+
+@njit(parallel=True, cache=True)
+def propagate_pass(I1, off1, I2, off2, j, start1, step1, a1, a2, gmin, gmax, baseline, slack, max_width, half,
+                   min_zncc):
+    """One propagation pass: match unmatched samples inside the depth range of the matches around them.
+
+    Sample ``k`` of line ``l`` (at ``start1[l] + k step1[l]``, COLMAP pixels of
+    image 1) without a partner (``j`` NaN) reads the distance range
+    ``gmin``/``gmax`` (H, W) of its pixel (grids already widened to the
+    neighbours; inf where none); its line-2 band (:func:`sample_band`, ``slack``
+    samples wider) at most ``max_width`` samples wide is searched by ZNCC as in
+    :func:`fill_from_band`. Fused in one pass so only the few unmatched
+    samples cost anything. Returns the filled copy of ``j`` and the mask of
+    filled samples.
+    """
+    L = off1.shape[0] - 1
+    H, W = gmin.shape
+    out = j.copy()
+    filled = np.zeros(j.shape[0], np.bool_)
+    for ll in prange(L):
+        l = np.int64(ll)
+        s1 = off1[l]
+        s2 = off2[l]
+        e2 = off2[l + 1]
+        a = I1[s1:off1[l + 1]]
+        b = I2[s2:e2]
+        ga = s2
+        gb = s2
+        for k in range(off1[l + 1] - s1):
+            i = s1 + k
+            if not np.isnan(j[i]):
+                continue
+            c = min(max(int(np.floor(start1[l, 0] + k * step1[l, 0])), 0), W - 1)
+            r = min(max(int(np.floor(start1[l, 1] + k * step1[l, 1])), 0), H - 1)
+            if not np.isfinite(gmax[r, c]):
+                continue
+            lo, hi, ga, gb = sample_band(a1[i], a2, s2, e2, gmin[r, c], gmax[r, c], baseline, slack, ga, gb)
+            if hi < lo or hi - lo + 1 > max_width:
+                continue
+            best, pos = _zncc_search(a, k, b, float(lo), hi - lo + 1, half, min_zncc)
+            if best >= min_zncc:
+                out[i] = pos
+                filled[i] = True
     return out, filled
 
 

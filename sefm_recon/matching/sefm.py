@@ -166,6 +166,16 @@ def depth_grids(uv: np.ndarray, dist: np.ndarray, shape: tuple[int, int], mask: 
     return grids
 
 
+def _widen(grids: tuple[np.ndarray, np.ndarray], radius: int) -> tuple[np.ndarray, np.ndarray]:
+    """Min and max depth grids, each cell taking the range of the cells within ``radius`` of it."""
+    gmin, gmax = grids
+    if radius > 0:
+        kernel = np.ones((2 * radius + 1, 2 * radius + 1), np.uint8)
+        gmin = cv2.erode(gmin, kernel, borderType=cv2.BORDER_REPLICATE)
+        gmax = cv2.dilate(gmax, kernel, borderType=cv2.BORDER_REPLICATE)
+    return gmin, gmax
+
+
 def grid_depth_bounds(lp: LinePairs, grids: tuple[np.ndarray, np.ndarray], scale: tuple[float, float], radius: int,
                       depths: tuple[float, float]):
     """Distance range (dmin, dmax) per line-1 sample from :func:`depth_grids` around it.
@@ -178,11 +188,7 @@ def grid_depth_bounds(lp: LinePairs, grids: tuple[np.ndarray, np.ndarray], scale
     """
     from ..geometry.kernels import lookup_depth_bounds
 
-    gmin, gmax = grids
-    if radius > 0:
-        kernel = np.ones((2 * radius + 1, 2 * radius + 1), np.uint8)
-        gmin = cv2.erode(gmin, kernel, borderType=cv2.BORDER_REPLICATE)
-        gmax = cv2.dilate(gmax, kernel, borderType=cv2.BORDER_REPLICATE)
+    gmin, gmax = _widen(grids, radius)
     return lookup_depth_bounds(*lp.side(1), float(scale[0]), float(scale[1]), gmin, gmax, float(depths[0]),
                                float(depths[1]))
 
@@ -289,12 +295,14 @@ def propagate(lp: LinePairs, tv: TwoView, I1, I2, j, idx, uv1, dist, keep, alpha
     jv = np.where(valid, j, np.nan)  # one pass; a NaN fill and a scatter cost 5x more here
     new = np.zeros(len(j), bool)
     nothing = np.zeros(len(j), np.float32)
+    start1, step1, _ = lp.side(1)
+    baseline = float(np.linalg.norm(tv.t))
     for _ in range(d.propagate_passes):
-        depths = grid_depth_bounds(lp, grids, (1.0, 1.0), d.propagate_radius, (0.0, np.inf))
+        gmin, gmax = _widen(grids, d.propagate_radius)
         # One sample of slack: the neighbours' depths are fine-level ones.
-        lo, hi = search_band(lp, tv, depths, 1, alphas, need=np.isnan(jv) & np.isfinite(depths[1]))
-        jv, filled = kernels.fill_from_band(I1, lp.offset1, I2, lp.offset2, jv, lo, hi, d.propagate_width,
-                                            d.fill_half_window, d.propagate_min_zncc)
+        jv, filled = kernels.propagate_pass(I1, lp.offset1, I2, lp.offset2, jv, start1, step1, *alphas, gmin, gmax,
+                                            baseline, 1, d.propagate_width, d.fill_half_window,
+                                            d.propagate_min_zncc)
         if not filled.any():
             break
         new |= filled
