@@ -74,7 +74,7 @@ class DenseConfig:
     open_ends: bool = True  #: also match beyond the first and last rough match of a line
     both_directions: bool = True  #: match 2->1 as well and keep the consistent matches
     reverse_max_size: int = 1200  #: ...on images (pyramid levels) up to this longest side; larger ones use the ZNCC test below (0 = always)
-    single_min_zncc: float = 0.5  #: min_zncc where the reverse pass does not run: it does most of its work at half the cost
+    single_min_zncc: float = 0.8  #: min_zncc where the reverse pass does not run: it does most of its work at half the cost
     consistency_px: float = 1.0  #: largest round-trip difference, samples
     subpixel: bool = True  #: refine partners by a parabola through the window correlation
     subpixel_half_window: int = 7  #: its ZNCC window half length, samples (all neighbour-line channels)
@@ -84,7 +84,7 @@ class DenseConfig:
     fill_radius: int = 3  #: search this many samples around the interpolated partner
     fill_half_window: int = 3  #: ZNCC window half length (all neighbour-line channels)
     fill_min_zncc: float = 0.9  #: correlation a filled match needs
-    propagate_passes: int = 2  #: grow valid matches into unmatched neighbours this many times (0 = off)
+    propagate_passes: int = 4  #: grow valid matches into unmatched neighbours this many times (0 = off)
     propagate_radius: int = 1  #: px around a sample whose valid matches bound its band
     propagate_width: int = 6  #: ...when that band is at most this many samples wide
     propagate_min_zncc: float = 0.95  #: ZNCC a propagated match needs (fill_half_window)
