@@ -61,6 +61,7 @@ class PyramidConfig:
     factor: int = 4  #: size reduction from one level to the next (a 2000 px pair: 500 px, then 2000 px)
     radius: int = 2  #: coarse pixels around a sample whose depths bound its band
     coarse_subpixel: bool = False  #: sub-pixel refinement, gap filling, propagation and the ZNCC test at the coarse levels too
+    coarse_both_directions: bool = False  #: the reverse pass and left-right check at the coarse levels too
     fill_width: int = 12  #: unmatched samples whose coarse-bounded band is at most this wide are matched by ZNCC (0 = off)
 
 

@@ -124,12 +124,14 @@ def test_jump_threshold_shrinks_with_the_photo_size_and_coarse_levels_keep_it(mo
     assert sefm.jump_threshold(off, 4000) == cfg.rough.jump_threshold
 
     seen = []
-    monkeypatch.setattr(sefm, "match_pair", lambda c1, c2, tv, ccfg: seen.append((c1.shape, ccfg.rough)) or None)
+    monkeypatch.setattr(sefm, "match_pair", lambda c1, c2, tv, ccfg: seen.append((c1.shape, ccfg.rough, ccfg.dense)) or None)
     K = np.array([[1500.0, 0, 1000], [0, 1500, 750], [0, 0, 1]])
     tv = TwoView(K, K, np.eye(3), np.array([-1.0, 0, 0]))
     img = np.zeros((1500, 2000, 3), np.uint8)
     sefm.coarse_level(img, img, tv, cfg)
-    (shape, rough_cfg), = seen
+    (shape, rough_cfg, dense_cfg), = seen
     assert shape[:2] == (375, 500)
     # the 500 px level matches with the 2000 px photo's threshold, not its own
     assert rough_cfg.jump_threshold == cfg.rough.jump_threshold / 2 and rough_cfg.jump_reference_size == 0
+    # it only bounds the fine level's search: one direction, whole samples
+    assert not dense_cfg.both_directions and not dense_cfg.subpixel and dense_cfg.propagate_passes == 0

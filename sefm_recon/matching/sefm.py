@@ -142,6 +142,8 @@ def coarse_level(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config) -
     if not p.coarse_subpixel:  # the coarse level only bounds the search: whole samples do
         ccfg = dataclasses.replace(ccfg, dense=dataclasses.replace(cfg.dense, subpixel=False, fill_max_gap=0,
                                                                    propagate_passes=0))
+    if not p.coarse_both_directions:  # measured: same bands, the coarse level in 60 % of the time
+        ccfg = dataclasses.replace(ccfg, dense=dataclasses.replace(ccfg.dense, both_directions=False))
     try:
         dm = match_pair(c1, c2, tvc, ccfg)
     except InputError:
