@@ -347,6 +347,10 @@ def match_pair(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config, pro
     if coarse is not None:
         depths = coarse_depth_bounds(lp, coarse, cfg.pyramid.radius, depths)
     lo, hi = search_band(lp, tv, depths, cfg.rough.band_slack, alphas)
+    # Big temporaries are dropped as soon as they are used up, so later stages
+    # reuse their memory instead of paying page faults on fresh memory
+    # (measured: README, speed).
+    del depths
     timings["line_pairs"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
@@ -363,12 +367,13 @@ def match_pair(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config, pro
         bar = tqdm(total=len(lp) * (2 if both else 1), desc="matching line pairs",
                    unit="line", leave=False)
     jump = jump_threshold(cfg, max(size1 + size2))
-    j, cost, anchor, stats = _match_direction(I1, off1, I2, off2, lo, hi, cfg, jump, bar)
+    j, cost, _, stats = _match_direction(I1, off1, I2, off2, lo, hi, cfg, jump, bar)
     n_dense = int(np.isfinite(j).sum())
     if both:
         lo21, hi21 = invert_band(lo, hi, off1, off2)
         i21, _, _, _ = _match_direction(I2, off2, I1, off1, lo21, hi21, cfg, jump, bar)
         j = consistent(j, i21, off1, off2, lp.count2, cfg.dense.consistency_px)
+        del lo21, hi21, i21
     if cfg.dense.fill_max_gap > 0:
         j, filled = kernels.fill_gaps(I1, off1, I2, off2, j, cfg.dense.fill_max_gap, cfg.dense.fill_radius,
                                       cfg.dense.fill_half_window, cfg.dense.fill_min_zncc)
@@ -377,12 +382,14 @@ def match_pair(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config, pro
         j, filled = kernels.fill_from_band(I1, off1, I2, off2, j, lo, hi, cfg.pyramid.fill_width,
                                            cfg.dense.fill_half_window, cfg.dense.fill_min_zncc)
         cost[filled] = 0.0
-    if cfg.dense.subpixel:
+    del lo, hi
+    if cfg.dense.subpixel and cfg.dense.subpixel_iterations > 0:
         for _ in range(cfg.dense.subpixel_iterations):
             j, zncc = kernels.refine_subpixel(I1, off1, I2, off2, j, cfg.dense.subpixel_half_window, 1.0)
         # A partner whose window does not correlate is most often a wrong one.
         if min_zncc > -1.0:
             j[zncc < min_zncc] = np.nan
+        del zncc
     if bar is not None:
         bar.close()
     timings["matching"] = time.perf_counter() - t0
@@ -396,6 +403,7 @@ def match_pair(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config, pro
     if cfg.dense.propagate_passes > 0:
         t0 = time.perf_counter()
         j, new = propagate(lp, tv, I1, I2, j, idx, uv1, dist, keep, alphas, img1.shape[:2], cfg)
+        del idx, line, uv1, uv2, X, dist, keep
         cost[new] = 0.0
         n_propagated = int(new.sum())
         idx, line, uv1, uv2, X, dist, keep = _validated_points(j, cost, lp, tv, img1.shape[:2], cfg)
