@@ -80,6 +80,10 @@ class DenseConfig:
     subpixel: bool = True  #: refine partners by a parabola through the window correlation
     subpixel_half_window: int = 7  #: its ZNCC window half length, samples (all neighbour-line channels)
     subpixel_iterations: int = 1
+    #: line 2's window is stretched by the local slope of the matches (partners of the samples this far
+    #: on either side): a slanted surface looks longer in one view (0 = off)
+    subpixel_slope_radius: int = 6
+    subpixel_min_stretch: float = 0.1  #: slopes closer to 1 than this keep the plain window (cheaper)
     min_zncc: float = -1.0  #: drop matches whose window ZNCC (all channels) is below this; needs subpixel (-1 = keep all)
     fill_max_gap: int = 64  #: fill gaps up to this many samples between matches on a line (0 = off)
     fill_radius: int = 3  #: search this many samples around the interpolated partner
@@ -203,6 +207,8 @@ _LIMITS: dict[str, tuple[float | None, float | None, bool]] = {
     "pyramid.fill_width": (0, 256, False),
     "dense.min_zncc": (-1, 1, False),
     "dense.single_min_zncc": (-1, 1, False),
+    "dense.subpixel_slope_radius": (0, 64, False),
+    "dense.subpixel_min_stretch": (0, 1, False),
     "dense.reverse_max_size": (0, None, False),
     "geometry.min_inliers": (5, None, False),
     "geometry.ransac_max_error": (0, None, True),

@@ -33,6 +33,7 @@ ABLATIONS: dict[str, list[str]] = {
     "- gap filling": ["dense.fill_max_gap=0"],
     "- propagation across lines": ["dense.propagate_passes=0"],
     "- sub-pixel refinement": ["dense.subpixel=false"],
+    "- stretched refinement window (slanted surfaces)": ["dense.subpixel_slope_radius=0"],
     "- 2-D neighbour check": ["validity.neighbour_tol_px=0"],
     "- S_p depth runs": ["validity.sp_min_run=1"],
     "strict S_v (paper)": ["validity.sv_max_unmatched=0"],

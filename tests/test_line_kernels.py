@@ -189,6 +189,43 @@ def test_refine_subpixel_refines_and_scores_samples_at_the_line_ends():
     assert abs(out[40] - 43.4) < 0.05
 
 
+def test_local_slope_of_the_partners():
+    j = np.array([10.0, 11.5, np.nan, 14.5, 16.0, 17.5, np.nan, np.nan])
+    assert mk._local_slope(j, 3, 8, 2) == pytest.approx(1.5)  # j[1], j[5]: (17.5 - 11.5) / 4
+    assert mk._local_slope(j, 5, 8, 2) == pytest.approx(1.5)  # nothing at 7: the nearest, j[5] itself
+    assert mk._local_slope(np.full(5, np.nan), 2, 5, 2) == 1.0
+    assert mk._local_slope(np.array([0.0, 5.0, 10.0]), 1, 3, 1) == 2.0  # clipped
+    assert mk._local_slope(np.array([5.0, 5.0, 5.0]), 1, 3, 1) == 0.5
+
+
+def test_stretched_window_finds_the_partner_on_a_slanted_surface():
+    # line 2 shows line 1's texture stretched 1.5 times: a[i] sits at j = 1.5 i + 4.3
+    rng = np.random.default_rng(6)
+    n = 120
+    t = np.arange(n, dtype=float)
+    noise = rng.normal(size=(n + 4, 2))
+    base = (noise[:-4] + 2 * noise[1:-3] + 3 * noise[2:-2] + 2 * noise[3:-1] + noise[4:]) / 9  # texture ~3 samples
+    a = base.astype(np.float32)
+    tj = np.arange(int(1.5 * n) + 10, dtype=float)
+    src = (tj - 4.3) / 1.5
+    b = np.stack([np.interp(src, t, base[:, c]) for c in range(2)], 1).astype(np.float32)
+    i, jpos = 50, 1.5 * 50 + 4.3
+    assert mk._zncc3_scaled(a, i, b, 60.0, 7, 1.0) == pytest.approx(mk._zncc3(a, i, b, 60.0, 7), abs=1e-9)
+    plain = mk._zncc3(a, i, b, jpos, 7)[1]
+    stretched = mk._zncc3_scaled(a, i, b, jpos, 7, 1.5)[1]
+    assert stretched > 0.99 and stretched > plain + 0.05
+    # refinement from the whole-sample answer, with and without the stretch
+    off1 = np.array([0, n], np.int64)
+    off2 = np.array([0, len(b)], np.int64)
+    truth = 1.5 * t + 4.3
+    j = np.where((t > 10) & (t < n - 10), np.rint(truth), np.nan)
+    inner = np.isfinite(j)
+    got, _ = mk.refine_subpixel(a, off1, b, off2, j, 7, 1.0, 6, 0.1)
+    plain, _ = mk.refine_subpixel(a, off1, b, off2, j, 7, 1.0, 0, 0.1)
+    err = np.abs(got[inner] - truth[inner])
+    assert np.median(err) < 0.05 and err.mean() < 0.2 * np.abs(plain[inner] - truth[inner]).mean()
+
+
 def test_fill_from_band_finds_the_shift_inside_a_narrow_band():
     rng = np.random.default_rng(2)
     n = 200

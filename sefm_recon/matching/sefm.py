@@ -385,7 +385,8 @@ def match_pair(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config, pro
     del lo, hi
     if cfg.dense.subpixel and cfg.dense.subpixel_iterations > 0:
         for _ in range(cfg.dense.subpixel_iterations):
-            j, zncc = kernels.refine_subpixel(I1, off1, I2, off2, j, cfg.dense.subpixel_half_window, 1.0)
+            j, zncc = kernels.refine_subpixel(I1, off1, I2, off2, j, d.subpixel_half_window, 1.0,
+                                              d.subpixel_slope_radius, d.subpixel_min_stretch)
         # A partner whose window does not correlate is most often a wrong one.
         if min_zncc > -1.0:
             j[zncc < min_zncc] = np.nan
