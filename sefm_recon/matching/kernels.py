@@ -694,6 +694,27 @@ def _zncc(a, i, b, jpos, half):
     return (sxy - sx * sy / m) / np.sqrt(vx * vy)
 
 
+#: Window sums of :func:`_add3`: x, x², y₋, y₀, y₊, y₋², y₀², y₊², xy₋, xy₀, xy₊.
+_SUMS3 = (0.0,) * 11
+
+
+@njit(inline="always")
+def _add3(t, x, yl, yc, yr):
+    """Add one sample pair (x, and y at three shifts) to the window sums ``t``."""
+    return (t[0] + x, t[1] + x * x, t[2] + yl, t[3] + yc, t[4] + yr, t[5] + yl * yl, t[6] + yc * yc,
+            t[7] + yr * yr, t[8] + x * yl, t[9] + x * yc, t[10] + x * yr)
+
+
+@njit(inline="always")
+def _ncc3(t, m):
+    """The three ZNCCs from the window sums of ``m`` sample pairs (-2 where a window is flat)."""
+    vx = t[1] - t[0] * t[0] / m
+    if vx <= 1e-6 * m:
+        return -2.0, -2.0, -2.0
+    return (_ncc(t[8], t[0], t[2], t[5], vx, m), _ncc(t[9], t[0], t[3], t[6], vx, m),
+            _ncc(t[10], t[0], t[4], t[7], vx, m))
+
+
 @njit(cache=True)
 def _zncc3(a, i, b, jpos, half):
     """:func:`_zncc` at ``jpos - 1``, ``jpos`` and ``jpos + 1`` in one pass (shared window sums)."""
@@ -711,33 +732,13 @@ def _zncc3(a, i, b, jpos, half):
     f = jpos - j0
     g = 1.0 - f
     m = (hi - lo + 1) * C
-    sx = 0.0
-    sxx = 0.0
-    sl = sc = sr = 0.0  # sums of y at jpos - 1, jpos, jpos + 1
-    sll = scc = srr = 0.0
-    sxl = sxc = sxr = 0.0
+    t = _SUMS3
     for s in range(lo, hi + 1):
         jj = j0 + s
         for c in range(C):
-            x = a[i + s, c]
-            yl = g * b[jj - 1, c] + f * b[jj, c]
-            yc = g * b[jj, c] + f * b[jj + 1, c]
-            yr = g * b[jj + 1, c] + f * b[jj + 2, c]
-            sx += x
-            sxx += x * x
-            sl += yl
-            sc += yc
-            sr += yr
-            sll += yl * yl
-            scc += yc * yc
-            srr += yr * yr
-            sxl += x * yl
-            sxc += x * yc
-            sxr += x * yr
-    vx = sxx - sx * sx / m
-    if vx <= 1e-6 * m:
-        return -2.0, -2.0, -2.0
-    return _ncc(sxl, sx, sl, sll, vx, m), _ncc(sxc, sx, sc, scc, vx, m), _ncc(sxr, sx, sr, srr, vx, m)
+            t = _add3(t, a[i + s, c], g * b[jj - 1, c] + f * b[jj, c], g * b[jj, c] + f * b[jj + 1, c],
+                      g * b[jj + 1, c] + f * b[jj + 2, c])
+    return _ncc3(t, m)
 
 
 @njit(cache=True)
@@ -783,11 +784,7 @@ def _zncc3_scaled(a, i, b, jpos, half, g):
     if hi - lo + 1 < half + 1:
         return _zncc3(a, i, b, jpos, half)  # near a line end: the plain (cut) window
     m = (hi - lo + 1) * C
-    sx = 0.0
-    sxx = 0.0
-    sl = sc = sr = 0.0
-    sll = scc = srr = 0.0
-    sxl = sxc = sxr = 0.0
+    t = _SUMS3
     for s in range(lo, hi + 1):
         p = jpos + g * s
         q = int(p)  # p >= 1 inside the bounds: truncation is the floor
@@ -795,25 +792,9 @@ def _zncc3_scaled(a, i, b, jpos, half, g):
         e = 1.0 - f
         q2 = min(q + 2, n2 - 1)
         for c in range(C):
-            x = a[i + s, c]
-            yl = e * b[q - 1, c] + f * b[q, c]
-            yc = e * b[q, c] + f * b[q + 1, c]
-            yr = e * b[q + 1, c] + f * b[q2, c]
-            sx += x
-            sxx += x * x
-            sl += yl
-            sc += yc
-            sr += yr
-            sll += yl * yl
-            scc += yc * yc
-            srr += yr * yr
-            sxl += x * yl
-            sxc += x * yc
-            sxr += x * yr
-    vx = sxx - sx * sx / m
-    if vx <= 1e-6 * m:
-        return -2.0, -2.0, -2.0
-    return _ncc(sxl, sx, sl, sll, vx, m), _ncc(sxc, sx, sc, scc, vx, m), _ncc(sxr, sx, sr, srr, vx, m)
+            t = _add3(t, a[i + s, c], e * b[q - 1, c] + f * b[q, c], e * b[q, c] + f * b[q + 1, c],
+                      e * b[q + 1, c] + f * b[q2, c])
+    return _ncc3(t, m)
 
 
 @njit(cache=True)
