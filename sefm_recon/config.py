@@ -101,7 +101,7 @@ class ValidityConfig:
     sv_strength: float = 2.0  #: ...where "strong" is a jump of this many thresholds
     sp_depth_jump: float = 0.03  #: S_p: relative depth change that breaks continuity
     sp_min_run: int = 4  #: S_p: shorter continuous runs are dropped
-    neighbour_tol_px: float = 1.0  #: 2-D check: largest disparity difference from the neighbours' median, px (0 = off)
+    neighbour_tol_px: float = 0.75  #: 2-D check: largest disparity difference from the neighbours' median, px (0 = off)
     neighbour_radius: int = 2  #: 2-D check window half size, px
     neighbour_support: int = 6  #: neighbours needed to judge a match
     drop_isolated: bool = True  #: drop matches with fewer neighbours than that (instead of keeping them)
