@@ -92,7 +92,10 @@ class DenseConfig:
     propagate_passes: int = 4  #: grow valid matches into unmatched neighbours this many times (0 = off)
     propagate_radius: int = 1  #: px around a sample whose valid matches bound its band
     propagate_width: int = 6  #: ...when that band is at most this many samples wide
-    propagate_min_zncc: float = 0.95  #: ZNCC a propagated match needs (fill_half_window)
+    propagate_min_zncc: float = 0.98  #: ZNCC a propagated match needs (fill_half_window)
+    #: propagation also tries the window moved this many samples to either side (0 = centred only):
+    #: next to a depth edge the centred window straddles it
+    propagate_window_shift: int = 3
 
 
 @dataclass
@@ -208,6 +211,7 @@ _LIMITS: dict[str, tuple[float | None, float | None, bool]] = {
     "dense.min_zncc": (-1, 1, False),
     "dense.single_min_zncc": (-1, 1, False),
     "dense.subpixel_slope_radius": (0, 64, False),
+    "dense.propagate_window_shift": (0, 64, False),
     "dense.subpixel_min_stretch": (0, 1, False),
     "dense.reverse_max_size": (0, None, False),
     "geometry.min_inliers": (5, None, False),

@@ -32,6 +32,7 @@ ABLATIONS: dict[str, list[str]] = {
     "- open line ends": ["dense.open_ends=false"],
     "- gap filling": ["dense.fill_max_gap=0"],
     "- propagation across lines": ["dense.propagate_passes=0"],
+    "- shifted propagation windows (depth edges)": ["dense.propagate_window_shift=0"],
     "- sub-pixel refinement": ["dense.subpixel=false"],
     "- stretched refinement window (slanted surfaces)": ["dense.subpixel_slope_radius=0"],
     "- 2-D neighbour check": ["validity.neighbour_tol_px=0"],

@@ -226,6 +226,27 @@ def test_stretched_window_finds_the_partner_on_a_slanted_surface():
     assert np.median(err) < 0.05 and err.mean() < 0.2 * np.abs(plain[inner] - truth[inner]).mean()
 
 
+def test_shifted_window_matches_a_sample_next_to_a_depth_edge():
+    # line 1: foreground texture up to sample 49, background from 50; in line 2
+    # the foreground moved by 2 samples and the background by 6 (4 occluded)
+    rng = np.random.default_rng(7)
+    fg = rng.normal(size=(80, 3))
+    bg = rng.normal(size=(120, 3))
+    a = np.concatenate([fg[:50], bg[50:110]]).astype(np.float32)
+    b = np.empty((116, 3), np.float32)
+    b[2:52] = fg[:50]  # b[k] = fg[k - 2]
+    b[:2] = rng.normal(size=(2, 3))
+    b[52:56] = rng.normal(size=(4, 3))  # background seen only in view 2
+    b[56:116] = bg[50:110]  # b[k] = bg[k - 6]
+    i = 51  # background, one sample from the edge: its partner is 57
+    centred, _ = mk._zncc_search(a, i, b, 54.0, 7, 3, 0.98, 0)
+    shifted, pos = mk._zncc_search(a, i, b, 54.0, 7, 3, 0.98, 3)
+    assert centred < 0.98 < shifted and pos == pytest.approx(57.0, abs=0.5)
+    # inside the background, the centred window already does it (and is kept)
+    z, pos = mk._zncc_search(a, 80, b, 83.0, 7, 3, 0.98, 3)
+    assert z > 0.99 and pos == pytest.approx(86.0, abs=0.5)
+
+
 def test_fill_from_band_finds_the_shift_inside_a_narrow_band():
     rng = np.random.default_rng(2)
     n = 200

@@ -806,23 +806,38 @@ def _ncc(sxy, sx, sy, syy, vx, m):
 
 
 @njit(cache=True)
-def _zncc_search(a, i, b, first, n, half, min_zncc):
+def _zncc_search(a, i, b, first, n, half, min_zncc, shift=0):
     """Best ZNCC of ``a[i]``'s window over line-2 positions ``first + d``, d = 0..n-1.
 
-    A best position reaching ``min_zncc`` is refined by a parabola through its
-    neighbours (by at most half a sample). Returns (best ZNCC, position).
+    With ``shift`` > 0 the window may also be moved ``shift`` samples to
+    either side (the same move on both lines; the best of the three counts),
+    so a sample next to a depth edge is judged on the side of the edge it
+    belongs to. A best position reaching ``min_zncc`` is refined by a
+    parabola through its neighbours (by at most half a sample). Returns
+    (best ZNCC, position).
     """
     best = -2.0
     bj = first
+    bs = 0
     for d in range(n):
         z = _zncc(a, i, b, first + d, half)
         if z > best:
             best = z
             bj = first + d
+    if best < min_zncc and shift > 0:  # the centred window failed: try the shifted ones
+        for sh in (-shift, shift):
+            if not 0 <= i + sh < a.shape[0]:
+                continue
+            for d in range(n):
+                z = _zncc(a, i + sh, b, first + d + sh, half)
+                if z > best:
+                    best = z
+                    bj = first + d
+                    bs = sh
     if best < min_zncc:
         return best, bj
-    zl = _zncc(a, i, b, bj - 1.0, half)
-    zr = _zncc(a, i, b, bj + 1.0, half)
+    zl = _zncc(a, i + bs, b, bj - 1.0 + bs, half)
+    zr = _zncc(a, i + bs, b, bj + 1.0 + bs, half)
     den = zl - 2.0 * best + zr
     off = 0.0
     if zl > -2.0 and zr > -2.0 and den < 0.0:
@@ -1021,7 +1036,7 @@ def fill_from_band(I1, off1, I2, off2, j, lo, hi, max_width, half, min_zncc):
 
 @njit(parallel=True, cache=True)
 def propagate_pass(I1, off1, I2, off2, j, start1, step1, a1, a2, gmin, gmax, baseline, slack, max_width, half,
-                   min_zncc):
+                   min_zncc, shift=0):
     """One propagation pass: match unmatched samples inside the depth range of the matches around them.
 
     Sample ``k`` of line ``l`` (at ``start1[l] + k step1[l]``, COLMAP pixels of
@@ -1057,7 +1072,7 @@ def propagate_pass(I1, off1, I2, off2, j, start1, step1, a1, a2, gmin, gmax, bas
             lo, hi, ga, gb = sample_band(a1[i], a2, s2, e2, gmin[r, c], gmax[r, c], baseline, slack, ga, gb)
             if hi < lo or hi - lo + 1 > max_width:
                 continue
-            best, pos = _zncc_search(a, k, b, float(lo), hi - lo + 1, half, min_zncc)
+            best, pos = _zncc_search(a, k, b, float(lo), hi - lo + 1, half, min_zncc, shift)
             if best >= min_zncc:
                 out[i] = pos
                 filled[i] = True

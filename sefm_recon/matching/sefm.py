@@ -304,7 +304,7 @@ def propagate(lp: LinePairs, tv: TwoView, I1, I2, j, idx, uv1, dist, keep, alpha
         # One sample of slack: the neighbours' depths are fine-level ones.
         jv, filled = kernels.propagate_pass(I1, lp.offset1, I2, lp.offset2, jv, start1, step1, *alphas, gmin, gmax,
                                             baseline, 1, d.propagate_width, d.fill_half_window,
-                                            d.propagate_min_zncc)
+                                            d.propagate_min_zncc, d.propagate_window_shift)
         if not filled.any():
             break
         new |= filled
