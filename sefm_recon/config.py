@@ -92,7 +92,7 @@ class DenseConfig:
     propagate_passes: int = 4  #: grow valid matches into unmatched neighbours this many times (0 = off)
     propagate_radius: int = 1  #: px around a sample whose valid matches bound its band
     propagate_width: int = 6  #: ...when that band is at most this many samples wide
-    propagate_min_zncc: float = 0.98  #: ZNCC a propagated match needs (fill_half_window)
+    propagate_min_zncc: float = 0.97  #: ZNCC a propagated match needs (fill_half_window)
     #: propagation also tries the window moved this many samples to either side (0 = centred only):
     #: next to a depth edge the centred window straddles it
     propagate_window_shift: int = 3
