@@ -284,7 +284,9 @@ def propagate(lp: LinePairs, tv: TwoView, I1, I2, j, idx, uv1, dist, keep, alpha
     within ``dense.propagate_radius`` pixels of it; where that range is at
     most ``dense.propagate_width`` samples of line 2 wide, the partner is its
     best ZNCC at ``dense.propagate_min_zncc`` or more (as the coarse-band
-    fill). Scanline DP leaves gaps where one line alone was ambiguous; the
+    fill; where the centred window fails, windows moved
+    ``dense.propagate_window_shift`` samples to either side are tried, for
+    samples next to a depth edge). Scanline DP leaves gaps where one line alone was ambiguous; the
     lines beside it often matched there. Each of the ``dense.propagate_passes``
     passes grows from the valid matches and the previous passes' new ones;
     the caller validates the result once. Returns the new ``j`` (invalid
