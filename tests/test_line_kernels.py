@@ -286,7 +286,8 @@ def test_propagation_pass_equals_bounds_then_band_then_fill():
     got, filled = mk.propagate_pass(I1, lp.offset1, I2, lp.offset2, j, start1, step1, *alphas, wmin, wmax,
                                     float(np.linalg.norm(t)), 1, 6, 3, 0.5)
     depths = grid_depth_bounds(lp, (gmin, gmax), (1.0, 1.0), 1, (0.0, np.inf))
-    lo, hi = search_band(lp, tv, depths, 1, alphas, need=np.isnan(j) & np.isfinite(depths[1]))
+    lo, hi = search_band(lp, tv, depths, 1, alphas)
+    lo[~np.isfinite(depths[1])], hi[~np.isfinite(depths[1])] = 0, -1  # no match nearby: no band
     want, wfilled = mk.fill_from_band(I1, lp.offset1, I2, lp.offset2, j, lo, hi, 6, 3, 0.5)
     assert wfilled.sum() > 1000
     np.testing.assert_array_equal(filled, wfilled)

@@ -193,7 +193,7 @@ def sample_band(alpha1, a2, s2, e2, dmin, dmax, baseline, slack, ga, gb):
 
 
 @njit(parallel=True, cache=True)
-def depth_band(a1, off1, a2, off2, dmin, dmax, baseline, slack, need):
+def depth_band(a1, off1, a2, off2, dmin, dmax, baseline, slack):
     """For each line-1 sample, the line-2 sample range holding points at distances [dmin, dmax].
 
     A point at distance ``d`` along the ray of angle ``a1`` is seen from camera 2
@@ -203,8 +203,6 @@ def depth_band(a1, off1, a2, off2, dmin, dmax, baseline, slack, need):
     Args:
         a1, a2: (N1,), (N2,) sample ray angles.
         dmin, dmax: (N1,) distance range per sample (``dmax`` may be inf).
-        need: (N1,) bool, the samples to find a band for; the others get an
-            empty one (``hi < lo``).
     Returns:
         lo, hi (N1,) int64 positions on line 2 relative to its start, widened
         by ``slack`` samples and clipped (``hi < lo`` when empty).
@@ -220,10 +218,6 @@ def depth_band(a1, off1, a2, off2, dmin, dmax, baseline, slack, need):
         ga = s2
         gb = s2
         for i in range(off1[l], off1[l + 1]):
-            if not need[i]:
-                lo[i] = 0
-                hi[i] = -1
-                continue
             lo[i], hi[i], ga, gb = sample_band(a1[i], a2, s2, e2, dmin[i], dmax[i], baseline, slack, ga, gb)
     return lo, hi
 

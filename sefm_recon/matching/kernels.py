@@ -743,14 +743,13 @@ def _zncc3(a, i, b, jpos, half):
 
 @njit(cache=True)
 def _local_slope(j, i, n, r):
-    """Line-2 samples per line-1 sample around sample ``i`` of a line: from the nearest partners within ``r``.
+    """Line-2 samples per line-1 sample around sample ``i`` of a line.
 
-    ``j`` (n,) partner positions of the line's samples (NaN: none). Returns 1.0
-    with no partner on either side; clipped to [0.5, 2].
+    The slope between the matched samples farthest from ``i`` within ``r`` on
+    either side (``i`` itself where a side has none). ``j`` (n,) partner
+    positions of the line's samples (NaN: none). Returns 1.0 with no partner
+    on either side; clipped to [0.5, 2].
     """
-    if i - r >= 0 and i + r < n and not np.isnan(j[i - r]) and not np.isnan(j[i + r]):
-        g = (j[i + r] - j[i - r]) / (2 * r)  # the common case, matched on both sides
-        return min(max(g, 0.5), 2.0)
     il = i
     for k in range(max(0, i - r), i):
         if not np.isnan(j[k]):
@@ -763,10 +762,8 @@ def _local_slope(j, i, n, r):
             break
     if ir == il:
         return 1.0
-    g = (j[ir] - j[il]) / (ir - il)
-    if not (g >= 0.5):
-        return 0.5
-    return min(g, 2.0)
+    # j[i] itself is matched (refinement only asks for matched samples), so g is finite.
+    return min(max((j[ir] - j[il]) / (ir - il), 0.5), 2.0)
 
 
 @njit(cache=True)

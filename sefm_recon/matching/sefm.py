@@ -62,15 +62,13 @@ def sample_alphas(lp: LinePairs, tv: TwoView) -> tuple[np.ndarray, np.ndarray]:
 
 
 def search_band(lp: LinePairs, tv: TwoView, depths, slack: int,
-                alphas: tuple[np.ndarray, np.ndarray] | None = None,
-                need: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                alphas: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
     """For each line-1 sample, the line-2 sample range holding points at the given depths.
 
     ``depths`` is ``(dmin, dmax)``: distances from camera 1, scalars for the
     whole image or (N1,) arrays, one range per line-1 sample (from a coarser
     level). Returns ``lo, hi`` (N1,) int64 positions on line 2, relative to its
-    start, widened by ``slack`` samples; only for the samples in ``need``
-    (default all), the others get an empty range (``hi < lo``).
+    start, widened by ``slack`` samples (``hi < lo`` where the range is empty).
     """
     from ..geometry.kernels import depth_band
 
@@ -78,9 +76,8 @@ def search_band(lp: LinePairs, tv: TwoView, depths, slack: int,
     n1 = len(a1)
     dmin = np.broadcast_to(np.asarray(depths[0], np.float64), (n1,))
     dmax = np.broadcast_to(np.asarray(depths[1], np.float64), (n1,))
-    need = np.ones(n1, bool) if need is None else np.ascontiguousarray(need, bool)
     return depth_band(a1, lp.offset1, a2, lp.offset2, np.ascontiguousarray(dmin), np.ascontiguousarray(dmax),
-                      float(np.linalg.norm(tv.t)), int(slack), need)
+                      float(np.linalg.norm(tv.t)), int(slack))
 
 
 def invert_band(lo: np.ndarray, hi: np.ndarray, off1: np.ndarray, off2: np.ndarray):
