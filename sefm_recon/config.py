@@ -108,6 +108,7 @@ class ValidityConfig:
     neighbour_radius: int = 2  #: 2-D check window half size, px
     neighbour_support: int = 6  #: neighbours needed to judge a match
     drop_isolated: bool = True  #: drop matches with fewer neighbours than that (instead of keeping them)
+    median_depth: bool = True  #: each kept match takes the median depth of its 2-D check window
     max_cost: float = 40.0  #: dense matches with a higher DP cost are dropped
     min_tri_angle_deg: float = 0.5  #: points seen under a smaller angle are dropped
 

@@ -109,20 +109,90 @@ def test_coarse_bounds_follow_the_coarse_depths_and_fall_back_elsewhere():
 
 
 def test_two_d_check_drops_a_point_the_majority_disagrees_with():
+    from sefm_recon.matching.validity import neighbour_consistency, neighbour_median
+
     rows, cols = np.mgrid[0:5, 0:5]
     uv = np.stack([cols.ravel(), rows.ravel()], 1) + 0.5  # pixel centres
     value = np.ones(25)
     value[12] = 5.0  # the centre disagrees with all 24 neighbours
     value[0] = 1.5  # a corner within tol of its neighbours
     mask = np.ones(25, bool)
-    keep, support = mk.grid_median_check(uv, value, mask, 5, 5, 2, 1.0, 6, False)
+    keep, median = neighbour_median(uv, value, (5, 5), 2, 1.0, 6, False, mask)
+    np.testing.assert_array_equal(keep, neighbour_consistency(uv, value, (5, 5), 2, 1.0, 6, False, mask))
     assert not keep[12] and keep[0] and keep[1:12].all()
+    assert median[12] == 1.0 and median[0] == 1.0  # the neighbours' median, the point itself left out
+    _, _, support = mk.grid_medians(uv, value, mask, 5, 5, 2)
     assert support[12] == 24 and support[0] == 8
     # a point outside the mask neither takes part nor is kept
     mask[12] = False
-    keep, support = mk.grid_median_check(uv, value, mask, 5, 5, 2, 1.0, 6, False)
-    assert not keep[12] and keep[:12].all() and keep[13:].all()
+    keep, median = neighbour_median(uv, value, (5, 5), 2, 1.0, 6, False, mask)
+    np.testing.assert_array_equal(keep, neighbour_consistency(uv, value, (5, 5), 2, 1.0, 6, False, mask))
+    assert not keep[12] and keep[:12].all() and keep[13:].all() and median[12] == 5.0
+    _, _, support = mk.grid_medians(uv, value, mask, 5, 5, 2)
     assert support[0] == 7 and support[6] == 14  # the masked centre no longer counts
+
+
+def test_two_d_check_with_an_even_count_keeps_what_lies_near_either_middle_value():
+    from sefm_recon.matching.validity import neighbour_consistency, neighbour_median
+
+    # Point 0 at (0, 0) has 8 neighbours in its 5x5 window: four at 1 and four at 3.
+    uv = np.array([[0, 0], [1, 0], [2, 0], [0, 1], [1, 1], [2, 1], [0, 2], [1, 2], [2, 2]], float) + 0.5
+    value = np.array([0.0, 1, 1, 1, 1, 3, 3, 3, 3])
+    for x, kept in ((0.0, False), (0.5, True), (3.4, True), (4.5, False)):
+        value[0] = x
+        keep, median = neighbour_median(uv, value, (3, 3), 2, 0.5, 6, False)
+        assert keep[0] == kept == neighbour_consistency(uv, value, (3, 3), 2, 0.5, 6, False)[0], x
+        assert median[0] == 2.0  # the mean of the middle two
+
+
+def test_grid_medians_equal_numpy_on_random_fields():
+    rng = np.random.default_rng(3)
+    h, w, r = 12, 15, 2
+    uv = rng.uniform(0, [w, h], (150, 2))
+    value = rng.normal(size=150).round(1)  # ties included
+    mask = rng.uniform(size=150) < 0.9
+    lower, upper, support = mk.grid_medians(uv, value, mask, h, w, r)
+    grid = np.full((h, w), np.nan)
+    for k in np.flatnonzero(mask):  # the first point of a cell wins
+        i, j = np.floor(uv[k, ::-1]).astype(int)
+        if np.isnan(grid[i, j]):
+            grid[i, j] = value[k]
+    for k in range(150):
+        if not mask[k]:
+            assert support[k] == 0 and np.isnan(lower[k]) and np.isnan(upper[k])
+            continue
+        i, j = np.floor(uv[k, ::-1]).astype(int)
+        win = grid[max(i - r, 0):i + r + 1, max(j - r, 0):j + r + 1].copy()
+        win[i - max(i - r, 0), j - max(j - r, 0)] = np.nan  # the point's own cell is left out
+        v = np.sort(win[np.isfinite(win)])
+        assert support[k] == len(v)
+        if len(v):
+            assert lower[k] == np.float32(v[(len(v) - 1) // 2]) and upper[k] == np.float32(v[len(v) // 2])
+        else:
+            assert np.isnan(lower[k]) and np.isnan(upper[k])
+    # the check by ranks keeps what the check by counting keeps
+    from sefm_recon.matching.validity import neighbour_consistency, neighbour_median
+
+    for tol in (0.05, 0.3, 1.0):
+        keep, _ = neighbour_median(uv, value, (h, w), r, tol, 3, True, mask)
+        np.testing.assert_array_equal(keep, neighbour_consistency(uv, value, (h, w), r, tol, 3, True, mask))
+
+
+def test_points_at_distance_lie_on_the_ray_and_project_to_the_epipolar_line():
+    from sefm_recon.geometry.triangulate import project
+
+    K1 = np.array([[500.0, 0, 320], [0, 500, 240], [0, 0, 1]])
+    K2 = np.array([[520.0, 0, 300], [0, 520, 250], [0, 0, 1]])
+    a = 0.1
+    R = np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]])
+    t = np.array([-1.0, 0.05, 0.1])
+    rng = np.random.default_rng(0)
+    uv1 = rng.uniform([0, 0], [640, 480], (50, 2))
+    dist = rng.uniform(2, 10, 50)
+    X, uv2 = mk.points_at_distance(np.linalg.inv(K1), K2, R, t, uv1, dist)
+    np.testing.assert_allclose(np.linalg.norm(X, axis=1), dist)
+    np.testing.assert_allclose(project(K1, np.eye(3), np.zeros(3), X), uv1, atol=1e-9)
+    np.testing.assert_allclose(project(K2, R, t, X), uv2, atol=1e-9)
 
 
 @pytest.mark.parametrize("jpos", [20.0, 20.3, 35.75])

@@ -579,6 +579,33 @@ def depth_runs_filter(depth, line_of, jump, min_run, mask):
     return keep
 
 
+@njit(cache=True)
+def _rasterise(uv, value, mask, height, width):
+    """(height, width) float32 grid of ``value`` at ``floor(uv)`` of the masked points (first one wins), NaN elsewhere."""
+    grid = np.full((height, width), np.nan, np.float32)
+    for k in range(uv.shape[0]):
+        if not mask[k]:
+            continue
+        r = int(np.floor(uv[k, 1]))
+        c = int(np.floor(uv[k, 0]))
+        if 0 <= r < height and 0 <= c < width and np.isnan(grid[r, c]):
+            grid[r, c] = value[k]
+    return grid
+
+
+@njit(inline="always")
+def _neighbours(grid, r, c, radius, buf):
+    """Copy the values of the other cells of the ``(2 radius + 1)^2`` window at (r, c) into ``buf``; returns their count."""
+    m = 0
+    for rr in range(max(r - radius, 0), min(r + radius + 1, grid.shape[0])):
+        for cc in range(max(c - radius, 0), min(c + radius + 1, grid.shape[1])):
+            v = grid[rr, cc]
+            if not np.isnan(v) and not (rr == r and cc == c):
+                buf[m] = v
+                m += 1
+    return m
+
+
 @njit(parallel=True, cache=True)
 def grid_median_check(uv, value, mask, height, width, radius, tol, min_support, drop_isolated=False):
     """2-D consistency: compare each point's value with the median of its neighbours.
@@ -590,50 +617,82 @@ def grid_median_check(uv, value, mask, height, width, radius, tol, min_support, 
     too few neighbours to judge is kept, unless ``drop_isolated``. The median
     test is done by counting, without sorting: the median lies more than
     ``tol`` above the point exactly when more than half of the neighbours do
-    (an even count split in half is kept). Points without ``mask`` are not kept.
+    (with an even count: when the lower middle value does). Points without
+    ``mask`` are not kept.
 
     Args:
         uv: (N, 2) positions (x, y), COLMAP pixels; value, mask: (N,).
     Returns (keep (N,) bool, support (N,) int64).
     """
     n = uv.shape[0]
-    grid = np.full((height, width), np.nan, np.float32)
-    for k in range(n):
-        if not mask[k]:
-            continue
-        r = int(np.floor(uv[k, 1]))
-        c = int(np.floor(uv[k, 0]))
-        if 0 <= r < height and 0 <= c < width and np.isnan(grid[r, c]):
-            grid[r, c] = value[k]
+    grid = _rasterise(uv, value, mask, height, width)
     keep = np.zeros(n, np.bool_)
     support = np.zeros(n, np.int64)
-    for kk in prange(n):
-        k = np.int64(kk)
-        if not mask[k]:
-            continue
-        r = int(np.floor(uv[k, 1]))
-        c = int(np.floor(uv[k, 0]))
-        x = value[k]
-        m = 0
-        above = 0
-        below = 0
-        for rr in range(max(r - radius, 0), min(r + radius + 1, height)):
-            for cc in range(max(c - radius, 0), min(c + radius + 1, width)):
-                if rr == r and cc == c:
-                    continue
-                v = grid[rr, cc]
-                if not np.isnan(v):
-                    m += 1
-                    if v > x + tol:
-                        above += 1
-                    elif v < x - tol:
-                        below += 1
-        support[k] = m
-        if m >= min_support:
-            keep[k] = not (2 * above > m or 2 * below > m)
-        else:
-            keep[k] = not drop_isolated
+    nchunk = min(n, 256)
+    for ch in prange(nchunk):
+        buf = np.empty((2 * radius + 1) ** 2, np.float32)  # one per chunk, not per point
+        for k in range(ch * n // nchunk, (ch + 1) * n // nchunk):
+            if not mask[k]:
+                continue
+            m = _neighbours(grid, int(np.floor(uv[k, 1])), int(np.floor(uv[k, 0])), radius, buf)
+            x = value[k]
+            above = 0
+            below = 0
+            for q in range(m):
+                above += buf[q] > x + tol
+                below += buf[q] < x - tol
+            support[k] = m
+            if m >= min_support:
+                keep[k] = not (2 * above > m or 2 * below > m)
+            else:
+                keep[k] = not drop_isolated
     return keep, support
+
+
+@njit(parallel=True, cache=True)
+def grid_medians(uv, value, mask, height, width, radius):
+    """The middle of each masked point's neighbours (as in :func:`grid_median_check`).
+
+    Returns ``(lower, upper, support)``: the lower and upper middle of the
+    sorted neighbour values ((N,) float32, equal for an odd count, NaN for
+    none or without ``mask``; their mean is the median) and their count
+    ((N,) int64). The point is within ``tol`` of the median in the sense of
+    :func:`grid_median_check` exactly when ``lower <= x + tol`` and
+    ``upper >= x - tol``.
+    """
+    n = uv.shape[0]
+    grid = _rasterise(uv, value, mask, height, width)
+    lower = np.full(n, np.nan, np.float32)
+    upper = np.full(n, np.nan, np.float32)
+    support = np.zeros(n, np.int64)
+    nchunk = min(n, 256)
+    for ch in prange(nchunk):
+        buf = np.empty((2 * radius + 1) ** 2, np.float32)
+        for k in range(ch * n // nchunk, (ch + 1) * n // nchunk):
+            if not mask[k]:
+                continue
+            m = _neighbours(grid, int(np.floor(uv[k, 1])), int(np.floor(uv[k, 0])), radius, buf)
+            support[k] = m
+            # The middle values by their ranks: m^2 branch-free comparisons are
+            # faster here than a quickselect's unpredictable branches.
+            h = m // 2
+            hl = (m - 1) // 2
+            lo = np.float32(np.nan)
+            up = np.float32(np.nan)
+            for i in range(m):
+                below = np.int32(0)
+                at_most = np.int32(0)
+                x = buf[i]
+                for q in range(m):
+                    below += np.int32(buf[q] < x)
+                    at_most += np.int32(buf[q] <= x)
+                if below <= h and h < at_most:
+                    up = x
+                if below <= hl and hl < at_most:
+                    lo = x
+            lower[k] = lo
+            upper[k] = up
+    return lower, upper, support
 
 
 @njit(cache=True)
@@ -961,6 +1020,34 @@ def _midpoint(Kinv1, Kinv2, Rt, c2, x1, y1, x2, y2):
         s2 = np.nan
     return (0.5 * (s1 * a0 + c2[0] + s2 * b0), 0.5 * (s1 * a1 + c2[1] + s2 * b1),
             0.5 * (s1 * a2 + c2[2] + s2 * b2), s1, s2, dot)
+
+
+@njit(parallel=True, cache=True)
+def points_at_distance(Kinv1, K2, R, t, uv1, dist):
+    """Points at distance ``dist`` along the rays of pixels ``uv1`` of camera 1, and their pixels in camera 2.
+
+    Camera 2 is ``x_cam2 = R X + t``. Each returned ``uv2`` lies on the
+    epipolar line of its ``uv1``, whatever the distance.
+    Returns X (N, 3) camera-1 frame, uv2 (N, 2).
+    """
+    n = uv1.shape[0]
+    X = np.empty((n, 3))
+    uv2 = np.empty((n, 2))
+    for kk in prange(n):
+        k = np.int64(kk)
+        r0, r1, r2 = pixel_ray(Kinv1, uv1[k, 0], uv1[k, 1])
+        s = dist[k] / np.sqrt(r0 * r0 + r1 * r1 + r2 * r2)
+        x0, x1, x2 = r0 * s, r1 * s, r2 * s
+        X[k, 0], X[k, 1], X[k, 2] = x0, x1, x2
+        y0 = R[0, 0] * x0 + R[0, 1] * x1 + R[0, 2] * x2 + t[0]
+        y1 = R[1, 0] * x0 + R[1, 1] * x1 + R[1, 2] * x2 + t[1]
+        y2 = R[2, 0] * x0 + R[2, 1] * x1 + R[2, 2] * x2 + t[2]
+        p0 = K2[0, 0] * y0 + K2[0, 1] * y1 + K2[0, 2] * y2
+        p1 = K2[1, 0] * y0 + K2[1, 1] * y1 + K2[1, 2] * y2
+        p2 = K2[2, 0] * y0 + K2[2, 1] * y1 + K2[2, 2] * y2
+        uv2[k, 0] = p0 / p2
+        uv2[k, 1] = p1 / p2
+    return X, uv2
 
 
 @njit(parallel=True, cache=True)

@@ -21,7 +21,7 @@ from ..geometry.epipolar import LinePairs, line_alphas, line_pairs, sample_line_
 from ..geometry.triangulate import triangulate
 from ..geometry.two_view import TwoView
 from . import kernels
-from .validity import depth_continuity, neighbour_consistency
+from .validity import depth_continuity, neighbour_consistency, neighbour_median
 
 logger = logging.getLogger(__name__)
 
@@ -256,21 +256,37 @@ def _line_points(j, cost, max_cost: float, min_angle: float, lp: LinePairs, tv: 
                                           np.linalg.inv(tv.K2), Rt, -Rt @ np.asarray(tv.t, np.float64), min_angle)
 
 
-def _validated_points(j, cost, lp: LinePairs, tv: TwoView, shape: tuple[int, int], cfg: Config):
+def _validated_points(j, cost, lp: LinePairs, tv: TwoView, shape: tuple[int, int], cfg: Config,
+                      median: bool = False):
     """Matched samples -> pixel pairs, points and the validity mask (S_p, then the 2-D check).
 
-    Returns ``idx, line, uv1, uv2, X, dist, keep`` over the matched samples
-    (see :func:`kernels.line_matches_to_points`).
+    Returns ``idx, line, uv1, uv2, X, dist, keep, med`` over the matched
+    samples (see :func:`kernels.line_matches_to_points`); ``med`` is None,
+    or with ``median`` and the 2-D check on, the check's neighbour median of
+    each distance (:func:`neighbour_median`).
     """
     v = cfg.validity
     idx, line, uv1, uv2, X, dist, valid = _line_points(j, cost, v.max_cost, np.radians(v.min_tri_angle_deg), lp, tv)
     keep = depth_continuity(dist, line, v.sp_depth_jump, v.sp_min_run, mask=valid)
+    med = None
     if v.neighbour_tol_px > 0:
         # One pixel of disparity is about 1 / (f * B) in inverse depth.
         scale = float(tv.K1[0, 0] * np.linalg.norm(tv.t))
-        keep = neighbour_consistency(uv1, scale / dist, shape, v.neighbour_radius, v.neighbour_tol_px,
-                                     v.neighbour_support, v.drop_isolated, mask=keep)
-    return idx, line, uv1, uv2, X, dist, keep
+        args = (uv1, scale / dist, shape, v.neighbour_radius, v.neighbour_tol_px, v.neighbour_support,
+                v.drop_isolated, keep)
+        if median:
+            keep, inv = neighbour_median(*args)
+            med = scale / inv
+        else:
+            keep = neighbour_consistency(*args)
+    return idx, line, uv1, uv2, X, dist, keep, med
+
+
+def _at_distance(uv1: np.ndarray, dist: np.ndarray, tv: TwoView):
+    """Points at ``dist`` along the rays of ``uv1`` and their partners, on the epipolar lines: ``X, uv2``."""
+    f64 = lambda a: np.ascontiguousarray(a, np.float64)  # noqa: E731
+    return kernels.points_at_distance(f64(np.linalg.inv(tv.K1)), f64(tv.K2), f64(tv.R), f64(np.ravel(tv.t)),
+                                      f64(uv1), f64(dist))
 
 
 def propagate(lp: LinePairs, tv: TwoView, I1, I2, j, idx, uv1, dist, keep, alphas, shape: tuple[int, int],
@@ -396,21 +412,29 @@ def match_pair(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config, pro
 
     t0 = time.perf_counter()
     dense = np.isfinite(j)
-    idx, line, uv1, uv2, X, dist, keep = _validated_points(j, cost, lp, tv, img1.shape[:2], cfg)
+    smooth = cfg.validity.median_depth
+    last = cfg.dense.propagate_passes == 0
+    idx, line, uv1, uv2, X, dist, keep, med = _validated_points(j, cost, lp, tv, img1.shape[:2], cfg, smooth and last)
     timings["validity"] = time.perf_counter() - t0
 
     n_propagated = 0
     if cfg.dense.propagate_passes > 0:
         t0 = time.perf_counter()
         j, new = propagate(lp, tv, I1, I2, j, idx, uv1, dist, keep, alphas, img1.shape[:2], cfg)
-        del idx, line, uv1, uv2, X, dist, keep
+        del idx, line, uv1, uv2, X, dist, keep, med
         cost[new] = 0.0
         n_propagated = int(new.sum())
-        idx, line, uv1, uv2, X, dist, keep = _validated_points(j, cost, lp, tv, img1.shape[:2], cfg)
+        idx, line, uv1, uv2, X, dist, keep, med = _validated_points(j, cost, lp, tv, img1.shape[:2], cfg, smooth)
         timings["propagate"] = time.perf_counter() - t0
     # Index arrays gather rows several times faster than boolean masks.
     ki = np.flatnonzero(keep)
     score = (1.0 / (1.0 + cost[idx.take(ki)] / 8.0)).astype(np.float32)
+    uv1, uv2, X = uv1.take(ki, axis=0), uv2.take(ki, axis=0), X.take(ki, axis=0)
+    if med is not None:
+        # The partner moves along its epipolar line to the depth of the 2-D median.
+        t0 = time.perf_counter()
+        X, uv2 = _at_distance(uv1, med.take(ki), tv)
+        timings["validity"] += time.perf_counter() - t0
     counts = {
         "line_pairs": int(len(lp)),
         "samples": int(len(I1)),
@@ -428,5 +452,4 @@ def match_pair(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config, pro
         counts["line_pairs"], counts["rough_matches"], counts["valid_segments"], counts["segments"],
         counts["dense_matches"], counts["valid_matches"],
     )
-    return DenseMatches(uv1.take(ki, axis=0), uv2.take(ki, axis=0), score, line.take(ki), X.take(ki, axis=0),
-                        counts, timings)
+    return DenseMatches(uv1, uv2, score, line.take(ki), X, counts, timings)
