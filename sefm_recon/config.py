@@ -67,7 +67,7 @@ class PyramidConfig:
 
 @dataclass
 class DenseConfig:
-    occlusion_penalty: float = 10.0  #: DP cost of a sample without partner
+    occlusion_penalty: float = 5.0  #: DP cost of a sample without partner
     band_fraction: float = 0.5  #: DP band half width, as a share of the segment length
     band_min: int = 4
     band_max: int = 24
