@@ -58,7 +58,7 @@ def test_ply_point_cloud_round_trip(tmp_path):
     assert [p for _, p in vert["properties"]] == ["x", "y", "z", "nx", "ny", "nz", "red", "green", "blue"]
     types = dict((p, ty) for ty, p in vert["properties"])
     assert all(types[c] == "uchar" for c in ("red", "green", "blue"))
-    assert all(types[c] in ("float", "double") for c in ("x", "y", "z", "nx", "ny", "nz"))
+    assert all(types[c] == "float" for c in ("x", "y", "z", "nx", "ny", "nz"))  # COLMAP fused.ply layout
 
     xyz2, rgb2, nrm2 = read_point_cloud(path)
     np.testing.assert_allclose(xyz2, xyz, atol=1e-6)

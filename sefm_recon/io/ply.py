@@ -1,9 +1,9 @@
 """Binary PLY point clouds and meshes (via open3d), written atomically.
 
 Point-cloud files carry the vertex properties ``x y z nx ny nz red green blue``
-(positions and normals as ``double``, the way open3d writes them; colours as
-``uchar``), binary little-endian -- the layout MeshLab, CloudCompare and COLMAP
-read. Properties whose data is absent (no normals, no colours) are omitted.
+(positions and normals as ``float``, colours as ``uchar``), binary
+little-endian -- the layout of COLMAP's own ``fused.ply``, which MeshLab and
+CloudCompare read. Meshes keep open3d's ``double`` vertices. Properties whose data is absent (no normals, no colours) are omitted.
 
 Empty inputs: open3d refuses to write a cloud or mesh with no vertices, and an
 empty reconstruction is almost always a bug upstream, so the writers raise
@@ -138,7 +138,7 @@ def write_point_cloud(
         rgb: (N, 3) uint8 colours, or None (no colour properties).
         normals: (N, 3) float normals, or None (no normal properties).
 
-    Vertex properties: ``x y z nx ny nz red green blue`` (double x6, uchar x3).
+    Vertex properties: ``x y z nx ny nz red green blue`` (float x6, uchar x3).
     Raises ``ValueError`` for N = 0 or mismatched shapes; ``OSError`` if the
     write fails. Returns ``Path(path)``.
     """
@@ -152,17 +152,19 @@ def write_point_cloud(
     if n == 0:
         raise ValueError("refusing to write an empty point cloud (N = 0)")
     rgb = _check_rgb(rgb, n)
-    pcd = o3d.geometry.PointCloud()
-    pcd.points = o3d.utility.Vector3dVector(xyz)
+    # The tensor API writes each attribute in its own dtype: float32 halves the
+    # file (a 2000x1500 pair: 74 instead of 141 MB) and the write time.
+    pcd = o3d.t.geometry.PointCloud()
+    pcd.point.positions = o3d.core.Tensor(np.ascontiguousarray(xyz, np.float32))
     if normals is not None:
         normals = _check_xyz(normals, "normals")
         if len(normals) != n:
             raise ValueError(f"normals must be ({n}, 3), got {normals.shape}")
-        pcd.normals = o3d.utility.Vector3dVector(normals)
+        pcd.point.normals = o3d.core.Tensor(np.ascontiguousarray(normals, np.float32))
     if rgb is not None:
-        pcd.colors = o3d.utility.Vector3dVector(_to_float_colors(rgb))
+        pcd.point.colors = o3d.core.Tensor(np.ascontiguousarray(rgb))
     with atomic_path(path) as tmp:
-        ok = o3d.io.write_point_cloud(str(tmp), pcd, write_ascii=False, compressed=False)
+        ok = o3d.t.io.write_point_cloud(str(tmp), pcd, write_ascii=False, compressed=False)
         if not ok:
             raise OSError(f"open3d failed to write {path}")
     log.debug("wrote %d points to %s", n, path)
