@@ -119,7 +119,7 @@ class OutputConfig:
     mesh: bool = True  #: write mesh.ply
     poisson_depth: int = 9
     density_quantile: float = 0.05  #: trim mesh vertices below this Poisson density quantile
-    mesh_max_points: int = 300000
+    mesh_max_points: int = 150000
     sparse_max_points: int = 100000  #: points written to the COLMAP model
     normals: str = "grid"  #: "grid": from camera 1's pixel grid (fast); "knn": open3d's KD-tree PCA
     clean_outliers: bool = False  #: open3d statistical outlier removal before writing points.ply (slow; the 2-D check does most of its work)
