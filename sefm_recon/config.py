@@ -89,7 +89,7 @@ class DenseConfig:
     fill_radius: int = 3  #: search this many samples around the interpolated partner
     fill_half_window: int = 3  #: ZNCC window half length (all neighbour-line channels)
     fill_min_zncc: float = 0.9  #: correlation a filled match needs
-    propagate_passes: int = 4  #: grow valid matches into unmatched neighbours this many times (0 = off)
+    propagate_passes: int = 8  #: grow valid matches into unmatched neighbours this many times (0 = off)
     propagate_radius: int = 1  #: px around a sample whose valid matches bound its band
     propagate_width: int = 6  #: ...when that band is at most this many samples wide
     propagate_min_zncc: float = 0.97  #: ZNCC a propagated match needs (fill_half_window)
