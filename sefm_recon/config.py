@@ -78,7 +78,8 @@ class DenseConfig:
     single_min_zncc: float = 0.8  #: min_zncc where the reverse pass does not run: it does most of its work at half the cost
     consistency_px: float = 1.0  #: largest round-trip difference, samples
     subpixel: bool = True  #: refine partners by a parabola through the window correlation
-    subpixel_half_window: int = 7  #: its ZNCC window half length, samples (all neighbour-line channels)
+    subpixel_half_window: int = 7  #: its ZNCC window half length, samples
+    subpixel_neighbours: int = 1  #: neighbour lines on each side in its window (a surface slanted across the lines shears the outer ones)
     subpixel_iterations: int = 1
     #: line 2's window is stretched by the local slope of the matches (partners of the samples this far
     #: on either side): a slanted surface looks longer in one view (0 = off)
@@ -225,6 +226,7 @@ _LIMITS: dict[str, tuple[float | None, float | None, bool]] = {
     "lines.max_lines": (1, None, False),
     "lines.neighbours": (0, 8, False),
     "lines.neighbour_step": (0, None, True),
+    "dense.subpixel_neighbours": (0, 8, False),
     "rough.jump_threshold": (0, None, False),
     "rough.jump_reference_size": (0, None, False),
     "rough.descriptor_radius": (1, 64, False),

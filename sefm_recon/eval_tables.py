@@ -35,6 +35,7 @@ ABLATIONS: dict[str, list[str]] = {
     "- shifted propagation windows (depth edges)": ["dense.propagate_window_shift=0"],
     "- sub-pixel refinement": ["dense.subpixel=false"],
     "- stretched refinement window (slanted surfaces)": ["dense.subpixel_slope_radius=0"],
+    "- refinement on 3 of the 5 lines (all 5)": ["dense.subpixel_neighbours=2"],
     "- 2-D neighbour check (and its median depth)": ["validity.neighbour_tol_px=0"],
     "- 2-D median depth": ["validity.median_depth=false"],
     "- S_p depth runs": ["validity.sp_min_run=1"],

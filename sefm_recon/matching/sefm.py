@@ -247,6 +247,17 @@ def _prepare(image: np.ndarray, sigma: float, color: bool) -> np.ndarray:
     return img
 
 
+def _inner_lines(I: np.ndarray, neighbours: int, keep: int) -> np.ndarray:
+    """The columns of the centre line and its ``keep`` nearest neighbour lines on each side.
+
+    ``I`` is (N, (2 neighbours + 1) C), neighbour-major (:func:`sample_line_channels`).
+    """
+    if keep >= neighbours:
+        return I
+    c = I.shape[1] // (2 * neighbours + 1)
+    return np.ascontiguousarray(I[:, (neighbours - keep) * c:(neighbours + keep + 1) * c])
+
+
 def _line_points(j, cost, max_cost: float, min_angle: float, lp: LinePairs, tv: TwoView):
     """:func:`kernels.line_matches_to_points` with this pair's line geometry and cameras (``min_angle`` radians)."""
     Rt = np.ascontiguousarray(tv.R.T)
@@ -399,9 +410,11 @@ def match_pair(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config, pro
         cost[filled] = 0.0
     del lo, hi
     if cfg.dense.subpixel and cfg.dense.subpixel_iterations > 0:
+        R1, R2 = _inner_lines(I1, nb, d.subpixel_neighbours), _inner_lines(I2, nb, d.subpixel_neighbours)
         for _ in range(cfg.dense.subpixel_iterations):
-            j, zncc = kernels.refine_subpixel(I1, off1, I2, off2, j, d.subpixel_half_window, 1.0,
+            j, zncc = kernels.refine_subpixel(R1, off1, R2, off2, j, d.subpixel_half_window, 1.0,
                                               d.subpixel_slope_radius, d.subpixel_min_stretch)
+        del R1, R2
         # A partner whose window does not correlate is most often a wrong one.
         if min_zncc > -1.0:
             j[zncc < min_zncc] = np.nan
