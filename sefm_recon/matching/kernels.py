@@ -607,7 +607,7 @@ def _neighbours(grid, r, c, radius, buf):
 
 
 @njit(parallel=True, cache=True)
-def grid_median_check(uv, value, mask, height, width, radius, tol, min_support, drop_isolated=False):
+def grid_median_check(uv, value, mask, height, width, radius, tol, min_support, drop_isolated=False, bins=0):
     """2-D consistency: compare each point's value with the median of its neighbours.
 
     Points with ``mask`` set are rasterised into a (height, width) grid at
@@ -620,17 +620,28 @@ def grid_median_check(uv, value, mask, height, width, radius, tol, min_support, 
     (with an even count: when the lower middle value does). Points without
     ``mask`` are not kept.
 
+    With ``bins`` > 0 the median itself is estimated for the kept, judged
+    points, without sorting either: the neighbours within ``tol`` of the point
+    go into ``bins`` bins of width ``2 tol / bins``, and the middle rank's
+    value is the mean of its bin (exact where it falls outside the range),
+    so within one bin width of the exact median.
+
     Args:
         uv: (N, 2) positions (x, y), COLMAP pixels; value, mask: (N,).
-    Returns (keep (N,) bool, support (N,) int64).
+    Returns (keep (N,) bool, support (N,) int64, median (N,) float64: the
+    estimate, or the point's own value where not estimated).
     """
     n = uv.shape[0]
     grid = _rasterise(uv, value, mask, height, width)
     keep = np.zeros(n, np.bool_)
     support = np.zeros(n, np.int64)
+    median = value.astype(np.float64)
     nchunk = min(n, 256)
+    width_bin = 2.0 * tol / max(bins, 1)
     for ch in prange(nchunk):
         buf = np.empty((2 * radius + 1) ** 2, np.float32)  # one per chunk, not per point
+        count = np.zeros(max(bins, 1), np.int64)
+        total = np.zeros(max(bins, 1))
         for k in range(ch * n // nchunk, (ch + 1) * n // nchunk):
             if not mask[k]:
                 continue
@@ -642,57 +653,44 @@ def grid_median_check(uv, value, mask, height, width, radius, tol, min_support, 
                 above += buf[q] > x + tol
                 below += buf[q] < x - tol
             support[k] = m
-            if m >= min_support:
-                keep[k] = not (2 * above > m or 2 * below > m)
-            else:
+            if m < min_support:
                 keep[k] = not drop_isolated
-    return keep, support
-
-
-@njit(parallel=True, cache=True)
-def grid_medians(uv, value, mask, height, width, radius):
-    """The middle of each masked point's neighbours (as in :func:`grid_median_check`).
-
-    Returns ``(lower, upper, support)``: the lower and upper middle of the
-    sorted neighbour values ((N,) float32, equal for an odd count, NaN for
-    none or without ``mask``; their mean is the median) and their count
-    ((N,) int64). The point is within ``tol`` of the median in the sense of
-    :func:`grid_median_check` exactly when ``lower <= x + tol`` and
-    ``upper >= x - tol``.
-    """
-    n = uv.shape[0]
-    grid = _rasterise(uv, value, mask, height, width)
-    lower = np.full(n, np.nan, np.float32)
-    upper = np.full(n, np.nan, np.float32)
-    support = np.zeros(n, np.int64)
-    nchunk = min(n, 256)
-    for ch in prange(nchunk):
-        buf = np.empty((2 * radius + 1) ** 2, np.float32)
-        for k in range(ch * n // nchunk, (ch + 1) * n // nchunk):
-            if not mask[k]:
                 continue
-            m = _neighbours(grid, int(np.floor(uv[k, 1])), int(np.floor(uv[k, 0])), radius, buf)
-            support[k] = m
-            # The middle values by their ranks: m^2 branch-free comparisons are
-            # faster here than a quickselect's unpredictable branches.
-            h = m // 2
-            hl = (m - 1) // 2
-            lo = np.float32(np.nan)
-            up = np.float32(np.nan)
-            for i in range(m):
-                below = np.int32(0)
-                at_most = np.int32(0)
-                x = buf[i]
-                for q in range(m):
-                    below += np.int32(buf[q] < x)
-                    at_most += np.int32(buf[q] <= x)
-                if below <= h and h < at_most:
-                    up = x
-                if below <= hl and hl < at_most:
-                    lo = x
-            lower[k] = lo
-            upper[k] = up
-    return lower, upper, support
+            keep[k] = not (2 * above > m or 2 * below > m)
+            if bins == 0 or not keep[k]:
+                continue
+            count[:] = 0
+            total[:] = 0.0
+            max_below = -np.inf
+            min_above = np.inf
+            for q in range(m):
+                v = buf[q]
+                if v < x - tol:
+                    max_below = max(max_below, v)
+                elif v > x + tol:
+                    min_above = min(min_above, v)
+                else:
+                    bq = min(int((v - (x - tol)) / width_bin), bins - 1)
+                    count[bq] += 1
+                    total[bq] += v
+            est = 0.0
+            # The two middles (the same one for an odd count). A kept point has
+            # at most half its neighbours below (above) the range, so a middle
+            # outside it is the largest value below (smallest above) it.
+            for rank in ((m - 1) // 2, m // 2):
+                if rank < below:
+                    est += max_below
+                elif rank >= m - above:
+                    est += min_above
+                else:
+                    cum = below
+                    for bq in range(bins):
+                        cum += count[bq]
+                        if rank < cum:
+                            est += total[bq] / count[bq]
+                            break
+            median[k] = 0.5 * est
+    return keep, support, median
 
 
 @njit(cache=True)
