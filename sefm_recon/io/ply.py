@@ -3,7 +3,8 @@
 Point-cloud files carry the vertex properties ``x y z nx ny nz red green blue``
 (positions and normals as ``float``, colours as ``uchar``), binary
 little-endian -- the layout of COLMAP's own ``fused.ply``, which MeshLab and
-CloudCompare read. Meshes keep open3d's ``double`` vertices. Properties whose data is absent (no normals, no colours) are omitted.
+CloudCompare read. Meshes keep open3d's ``double`` vertices. Properties whose
+data is absent (no normals, no colours) are omitted.
 
 Empty inputs: open3d refuses to write a cloud or mesh with no vertices, and an
 empty reconstruction is almost always a bug upstream, so the writers raise
