@@ -349,8 +349,9 @@ def test_propagation_pass_equals_bounds_then_band_then_fill():
     j = np.where(rng.random(len(I1)) < 0.1, 5.0, np.nan)
     wmin, wmax = _widen((gmin, gmax), 1)
     start1, step1, _ = lp.side(1)
+    everywhere = np.ones((SIZE[1], SIZE[0]), np.uint8)
     got, filled = mk.propagate_pass(I1, lp.offset1, I2, lp.offset2, j, start1, step1, *alphas, wmin, wmax,
-                                    float(np.linalg.norm(t)), 1, 6, 3, 0.5)
+                                    float(np.linalg.norm(t)), 1, 6, 3, 0.5, 0, everywhere)
     depths = grid_depth_bounds(lp, (gmin, gmax), (1.0, 1.0), 1, (0.0, np.inf))
     lo, hi = search_band(lp, tv, depths, 1, alphas)
     lo[~np.isfinite(depths[1])], hi[~np.isfinite(depths[1])] = 0, -1  # no match nearby: no band
@@ -358,6 +359,14 @@ def test_propagation_pass_equals_bounds_then_band_then_fill():
     assert wfilled.sum() > 1000
     np.testing.assert_array_equal(filled, wfilled)
     np.testing.assert_array_equal(got, want)
+    # only samples on active pixels are tried; they get the same partners
+    active = (rng.random((SIZE[1], SIZE[0])) < 0.5).astype(np.uint8)
+    part, pfilled = mk.propagate_pass(I1, lp.offset1, I2, lp.offset2, j, start1, step1, *alphas, wmin, wmax,
+                                      float(np.linalg.norm(t)), 1, 6, 3, 0.5, 0, active)
+    px = np.floor(lp.all_points1()).astype(int)
+    on = active[np.clip(px[:, 1], 0, SIZE[1] - 1), np.clip(px[:, 0], 0, SIZE[0] - 1)] == 1
+    np.testing.assert_array_equal(pfilled, filled & on)
+    np.testing.assert_array_equal(part[pfilled], got[pfilled])
 
 
 def test_galloping_search_equals_bisection_from_any_guess():

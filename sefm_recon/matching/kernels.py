@@ -1118,7 +1118,7 @@ def fill_from_band(I1, off1, I2, off2, j, lo, hi, max_width, half, min_zncc):
 
 @njit(parallel=True, cache=True)
 def propagate_pass(I1, off1, I2, off2, j, start1, step1, a1, a2, gmin, gmax, baseline, slack, max_width, half,
-                   min_zncc, shift=0):
+                   min_zncc, shift, active):
     """One propagation pass: match unmatched samples inside the depth range of the matches around them.
 
     Sample ``k`` of line ``l`` (at ``start1[l] + k step1[l]``, COLMAP pixels of
@@ -1127,8 +1127,9 @@ def propagate_pass(I1, off1, I2, off2, j, start1, step1, a1, a2, gmin, gmax, bas
     neighbours; inf where none); its line-2 band (:func:`sample_band`, ``slack``
     samples wider) at most ``max_width`` samples wide is searched by ZNCC as in
     :func:`fill_from_band`. Fused in one pass so only the few unmatched
-    samples cost anything. Returns the filled copy of ``j`` and the mask of
-    filled samples.
+    samples cost anything; only those on pixels where ``active`` (H, W) is
+    set are tried (the pixels whose range changed since the last pass).
+    Returns the filled copy of ``j`` and the mask of filled samples.
     """
     L = off1.shape[0] - 1
     H, W = gmin.shape
@@ -1149,7 +1150,7 @@ def propagate_pass(I1, off1, I2, off2, j, start1, step1, a1, a2, gmin, gmax, bas
                 continue
             c = min(max(int(np.floor(start1[l, 0] + k * step1[l, 0])), 0), W - 1)
             r = min(max(int(np.floor(start1[l, 1] + k * step1[l, 1])), 0), H - 1)
-            if not np.isfinite(gmax[r, c]):
+            if not active[r, c] or not np.isfinite(gmax[r, c]):
                 continue
             lo, hi, ga, gb = sample_band(a1[i], a2, s2, e2, gmin[r, c], gmax[r, c], baseline, slack, ga, gb)
             if hi < lo or hi - lo + 1 > max_width:

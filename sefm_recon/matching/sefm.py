@@ -325,12 +325,14 @@ def propagate(lp: LinePairs, tv: TwoView, I1, I2, j, idx, uv1, dist, keep, alpha
     nothing = np.zeros(len(j), np.float32)
     start1, step1, _ = lp.side(1)
     baseline = float(np.linalg.norm(tv.t))
+    active = np.ones(shape, np.uint8)
+    kernel = np.ones((2 * d.propagate_radius + 1,) * 2, np.uint8)
     for _ in range(d.propagate_passes):
         gmin, gmax = _widen(grids, d.propagate_radius)
         # One sample of slack: the neighbours' depths are fine-level ones.
         jv, filled = kernels.propagate_pass(I1, lp.offset1, I2, lp.offset2, jv, start1, step1, *alphas, gmin, gmax,
                                             baseline, 1, d.propagate_width, d.fill_half_window,
-                                            d.propagate_min_zncc, d.propagate_window_shift)
+                                            d.propagate_min_zncc, d.propagate_window_shift, active)
         if not filled.any():
             break
         new |= filled
@@ -338,7 +340,19 @@ def propagate(lp: LinePairs, tv: TwoView, I1, I2, j, idx, uv1, dist, keep, alpha
         jf = np.where(filled, jv, np.nan)
         _, _, fuv1, _, _, fdist, fvalid = _line_points(jf, nothing, 1.0, 0.0, lp, tv)
         depth_grids(fuv1, fdist, shape, fvalid, grids)
+        # Only pixels whose widened range just changed can match in the next
+        # pass: a sample that failed with the same range fails again.
+        active = cv2.dilate(_pixel_mask(fuv1, fvalid, shape), kernel)
     return jv, new
+
+
+def _pixel_mask(uv: np.ndarray, mask: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """(height, width) uint8, 1 at the pixels ``floor(uv)`` of the masked points."""
+    out = np.zeros(shape, np.uint8)
+    ij = np.floor(uv[mask]).astype(np.int64)
+    ok = (ij[:, 0] >= 0) & (ij[:, 0] < shape[1]) & (ij[:, 1] >= 0) & (ij[:, 1] < shape[0])
+    out[ij[ok, 1], ij[ok, 0]] = 1
+    return out
 
 
 def match_pair(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config, progress: bool = False) -> DenseMatches:
