@@ -456,12 +456,14 @@ def match_pair(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config, pro
     # Index arrays gather rows several times faster than boolean masks.
     ki = np.flatnonzero(keep)
     score = (1.0 / (1.0 + cost[idx.take(ki)] / 8.0)).astype(np.float32)
-    uv1, uv2, X = uv1.take(ki, axis=0), uv2.take(ki, axis=0), X.take(ki, axis=0)
+    uv1 = uv1.take(ki, axis=0)
     if med is not None:
         # The partner moves along its epipolar line to the depth of the 2-D median.
         t0 = time.perf_counter()
         X, uv2 = _at_distance(uv1, med.take(ki), tv)
         timings["validity"] += time.perf_counter() - t0
+    else:
+        uv2, X = uv2.take(ki, axis=0), X.take(ki, axis=0)
     counts = {
         "line_pairs": int(len(lp)),
         "samples": int(len(I1)),

@@ -52,14 +52,8 @@ def neighbour_consistency(uv: np.ndarray, inv_depth: np.ndarray, shape: tuple[in
         uv: (N, 2) positions in image 1 (COLMAP pixels). shape: (height, width).
         mask: (N,) matches that take part (default all); the others are not kept.
     """
-    if len(uv) == 0:
-        return np.zeros(0, bool)
-    mask = np.ones(len(uv), bool) if mask is None else np.ascontiguousarray(mask, bool)
-    keep, _, _ = kernels.grid_median_check(np.ascontiguousarray(uv, np.float64),
-                                        np.ascontiguousarray(inv_depth, np.float64), mask, int(shape[0]),
-                                        int(shape[1]), int(radius), float(tol), int(min_support),
-                                        bool(drop_isolated))
-    return keep
+    # The same pass without the median estimate (bins = 0).
+    return neighbour_median(uv, inv_depth, shape, radius, tol, min_support, drop_isolated, mask, bins=0)[0]
 
 
 def neighbour_median(uv: np.ndarray, inv_depth: np.ndarray, shape: tuple[int, int], radius: int = 2,
@@ -75,7 +69,8 @@ def neighbour_median(uv: np.ndarray, inv_depth: np.ndarray, shape: tuple[int, in
     depth edges. It is estimated to within ``2 tol / bins`` (one bin of a
     histogram of the neighbours within ``tol``; exact ranks cost four times
     the check). Dropped matches, those with fewer than ``min_support``
-    neighbours and those without ``mask`` get their own value.
+    neighbours and those without ``mask`` get their own value; so does every
+    match with ``bins`` = 0 (the check alone).
     """
     inv_depth = np.ascontiguousarray(inv_depth, np.float64)
     if len(uv) == 0:
