@@ -48,6 +48,42 @@ def _reference_score(p, q, d1, d2, lo, hi, max_dist):
 # ------------------------------------------------------------------ rough DP
 
 
+def _reference_pairs(p, q, d1, d2, lo, hi, max_dist):
+    """The full-table DP with its back-pointers (row above, then left, then the pair, each on a strict gain)."""
+    m, n = len(p), len(q)
+    S = np.zeros((m + 1, n + 1), np.float32)
+    B = np.zeros((m + 1, n + 1), np.int8)
+    for i in range(1, m + 1):
+        for j in range(1, n + 1):
+            best, b = float(S[i - 1, j]), 1
+            if S[i, j - 1] > best:
+                best, b = float(S[i, j - 1]), 2
+            if lo[p[i - 1]] <= q[j - 1] <= hi[p[i - 1]]:
+                diff = d1[i - 1] - d2[j - 1]  # float32, as the kernel
+                d2sum = 0.0
+                for c in range(len(diff)):
+                    d2sum += float(diff[c]) * float(diff[c])
+                    if d2sum >= max_dist * max_dist:
+                        break
+                if d2sum < max_dist * max_dist:
+                    cand = float(S[i - 1, j - 1]) + (max_dist - np.sqrt(d2sum))
+                    if cand > best:
+                        best, b = cand, 0
+            S[i, j], B[i, j] = best, b
+    out, i, j = [], m, n
+    while i > 0 and j > 0:
+        if B[i, j] == 0:
+            out.append((i - 1, j - 1))
+            i, j = i - 1, j - 1
+        elif B[i, j] == 1:
+            i -= 1
+        else:
+            j -= 1
+    return np.array(out[::-1], np.int64).reshape(-1, 2)
+
+
+
+
 @settings(max_examples=150, **SETTINGS)
 @given(p=increasing(), q=increasing(), dim=st.integers(1, 8), max_dist=st.floats(0.0, 3.0),
        seed=st.integers(0, 2**32 - 1), banded=st.booleans())
@@ -82,6 +118,25 @@ def test_rough_alignment_is_ordered_in_range_and_optimal(p, q, dim, max_dist, se
         hi_r = hi if banded else np.full(int(p.max()) + 1, 10**9, np.int64)
         score = float(np.sum(max_dist - dist))
         assert score == pytest.approx(_reference_score(p, q, d1, d2, lo_r, hi_r, max_dist), rel=1e-4, abs=1e-4)
+
+
+@settings(max_examples=150, **SETTINGS)
+@given(p=increasing(), q=increasing(), dim=st.integers(1, 4), seed=st.integers(0, 2**32 - 1),
+       banded=st.booleans())
+def test_rough_alignment_row_update_equals_the_full_table(p, q, dim, seed, banded):
+    # The kernel keeps one row of the table; its pairs are the full table's,
+    # ties included (repeated descriptors make many equal scores).
+    rng = np.random.default_rng(seed)
+    d1 = rng.integers(0, 3, size=(len(p), dim)).astype(np.float32) * 0.25
+    d2 = rng.integers(0, 3, size=(len(q), dim)).astype(np.float32) * 0.25
+    n1 = int(p.max()) + 1 if len(p) else 1
+    if banded:
+        lo = rng.integers(-5, 200, n1)
+        hi = lo + rng.integers(-10, 120, n1)
+    else:
+        lo, hi = np.zeros(n1, np.int64), np.full(n1, 10**9, np.int64)
+    pairs = np.asarray(rough.align_keypoints(p, q, d1, d2, 0.6, lo=lo, hi=hi)).reshape(-1, 2)
+    np.testing.assert_array_equal(pairs, _reference_pairs(p, q, d1, d2, lo, hi, 0.6))
 
 
 @settings(max_examples=100, **SETTINGS)

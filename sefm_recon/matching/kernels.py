@@ -116,6 +116,15 @@ def align_keypoints(p, q, desc1, desc2, lo, hi, max_dist):
     view only). A pair is allowed only when ``q[j]`` lies in the search band
     ``[lo[p[i]], hi[p[i]]]`` of line-2 positions.
 
+    The DP table ``S[i, j]`` (best score of ``p[:i]`` against ``q[:j]``) is
+    kept as one row, updated in place: outside the band a row only repeats
+    the row above until its first in-band cell, and after the last one only
+    until the row above catches up, so a narrow band costs a few cells per
+    key point instead of a full row (measured: README, speed). Each cell
+    also keeps the last pair of its optimal path (``owner``), so the pairs
+    are read back without the full table. Ties are broken as in the full
+    table: the row above, then the cell to the left, then the pair.
+
     Args:
         p, q: (m,), (n,) increasing key point positions on line 1 and line 2.
         desc1, desc2: (m, D), (n, D) descriptors.
@@ -125,53 +134,77 @@ def align_keypoints(p, q, desc1, desc2, lo, hi, max_dist):
     """
     m = p.shape[0]
     n = q.shape[0]
-    S = np.zeros((m + 1, n + 1), np.float32)
-    B = np.zeros((m + 1, n + 1), np.int8)
     D = desc1.shape[1]
     max_d2 = max_dist * max_dist
-    for i in range(1, m + 1):
-        pi = p[i - 1]
-        for j in range(1, n + 1):
-            best = S[i - 1, j]
-            b = _UP
-            if S[i, j - 1] > best:
-                best = S[i, j - 1]
-                b = _LEFT
-            qj = q[j - 1]
-            if qj >= lo[pi] and qj <= hi[pi]:
-                # Squared distance, abandoned once past max_dist: most pairs in
-                # the band are far apart, and the descriptors are long.
-                d2 = 0.0
-                for c in range(D):
-                    diff = desc1[i - 1, c] - desc2[j - 1, c]
-                    d2 += diff * diff
-                    if d2 >= max_d2:
-                        break
-                if d2 < max_d2:
-                    dist = np.sqrt(d2)
-                    cand = S[i - 1, j - 1] + (max_dist - dist)
-                    if cand > best:
-                        best = cand
-                        b = _DIAG
-            S[i, j] = best
-            B[i, j] = b
-    out = np.empty((min(m, n), 2), np.int64)
+    # In-band columns of every row: q[j0[i] : j1[i]].
+    j0 = np.searchsorted(q, lo[p], "left")
+    j1 = np.searchsorted(q, hi[p], "right")
+    total = 0
+    for i in range(m):
+        total += max(0, j1[i] - j0[i])
+    pair_i = np.empty(total, np.int64)
+    pair_j = np.empty(total, np.int64)
+    pred = np.empty(total, np.int64)
+    S = np.zeros(n + 1, np.float32)  # S[j]: column j of the current row (0: no key point of q)
+    owner = np.full(n + 1, -1, np.int64)
     k = 0
-    i = m
-    j = n
-    while i > 0 and j > 0:
-        b = B[i, j]
-        if b == _DIAG:
-            out[k, 0] = i - 1
-            out[k, 1] = j - 1
-            k += 1
-            i -= 1
-            j -= 1
-        elif b == _UP:
-            i -= 1
-        else:
-            j -= 1
-    return out[:k][::-1].copy()
+    for i in range(m):
+        a = j0[i]
+        b = j1[i]
+        if b <= a:
+            continue
+        # Row i-1's values at columns a .. b (cell j + 1 is q[:j + 1]).
+        diag_s = S[a]
+        diag_o = owner[a]
+        left_s = S[a]
+        left_o = owner[a]
+        for j in range(a, b):
+            up_s = S[j + 1]
+            up_o = owner[j + 1]
+            best = up_s
+            bo = up_o
+            if left_s > best:
+                best = left_s
+                bo = left_o
+            d2 = 0.0
+            for c in range(D):
+                diff = desc1[i, c] - desc2[j, c]
+                d2 += diff * diff
+                if d2 >= max_d2:
+                    break
+            if d2 < max_d2:
+                cand = diag_s + (max_dist - np.sqrt(d2))
+                if cand > best:
+                    best = cand
+                    pair_i[k] = i
+                    pair_j[k] = j
+                    pred[k] = diag_o
+                    bo = k
+                    k += 1
+            diag_s = up_s
+            diag_o = up_o
+            S[j + 1] = best
+            owner[j + 1] = bo
+            left_s = S[j + 1]
+            left_o = bo
+        # Past the band, the row takes the left cell until the row above is as good.
+        for j in range(b + 1, n + 1):
+            if not left_s > S[j]:
+                break
+            S[j] = left_s
+            owner[j] = left_o
+    count = 0
+    c = owner[n]
+    while c >= 0:
+        count += 1
+        c = pred[c]
+    out = np.empty((count, 2), np.int64)
+    c = owner[n]
+    for r in range(count - 1, -1, -1):
+        out[r, 0] = pair_i[c]
+        out[r, 1] = pair_j[c]
+        c = pred[c]
+    return out
 
 
 @njit(cache=True)
