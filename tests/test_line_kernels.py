@@ -254,6 +254,16 @@ def test_refine_subpixel_refines_and_scores_samples_at_the_line_ends():
         assert abs(out[i] - (i + 3.4)) < 0.15  # from 0.4 off (the parabola is not exact)
     assert abs(out[40] - 43.4) < 0.05
 
+    # Channels c0:c1 of wider arrays (a view in the kernel) give what a copy of them gives.
+    rng = np.random.default_rng(0)
+    wide_a = np.concatenate([rng.normal(size=(n, 1)), a, rng.normal(size=(n, 3))], 1).astype(np.float32)
+    wide_b = np.concatenate([rng.normal(size=(n + 6, 1)), b, rng.normal(size=(n + 6, 3))], 1).astype(np.float32)
+    got = mk.refine_subpixel(wide_a, off1, wide_b, off2, j, 7, 1.0, 6, 0.1, 1, 3)
+    want = mk.refine_subpixel(a, off1, b, off2, j, 7, 1.0, 6, 0.1)
+    np.testing.assert_array_equal(got[0], want[0])
+    np.testing.assert_array_equal(got[1], want[1])
+    assert not np.array_equal(mk.refine_subpixel(wide_a, off1, wide_b, off2, j, 7, 1.0)[1], want[1])
+
 
 def test_local_slope_of_the_partners():
     j = np.array([10.0, 11.5, np.nan, 14.5, 16.0, 17.5, np.nan, np.nan])

@@ -971,7 +971,7 @@ def fill_gaps(I1, off1, I2, off2, j, max_gap, radius, half, min_zncc):
 
 
 @njit(parallel=True, cache=True)
-def refine_subpixel(I1, off1, I2, off2, j, half, max_shift, slope_radius=0, min_stretch=0.1):
+def refine_subpixel(I1, off1, I2, off2, j, half, max_shift, slope_radius=0, min_stretch=0.1, c0=0, c1=-1):
     """Sub-pixel partner positions: a parabola through the ZNCC at j - 1, j, j + 1.
 
     The DP places partners on its sample grid (after the segment resampling);
@@ -982,18 +982,21 @@ def refine_subpixel(I1, off1, I2, off2, j, half, max_shift, slope_radius=0, min_
     of the partners (:func:`_local_slope`) where it differs from 1 by at
     least ``min_stretch``: on a slanted surface an unstretched window is
     biased, which costs precision at 1 px.
+    Only channels ``c0`` up to ``c1`` (exclusive; -1: all) take part: a
+    view, so the caller need not copy the samples of the lines it uses.
     Returns the refined copy of ``j`` and the ZNCC at the DP's position
     (NaN where unmatched, -2 where the window is flat or, cut at the line
     ends, shorter than ``half + 1`` samples).
     """
     L = off1.shape[0] - 1
+    ce = I1.shape[1] if c1 < 0 else c1
     out = j.copy()
     zncc = np.full(j.shape[0], np.nan, np.float32)
     for l in prange(L):
         s1 = off1[l]
         e1 = off1[l + 1]
-        a = I1[s1:e1]
-        b = I2[off2[l]:off2[l + 1]]
+        a = I1[s1:e1, c0:ce]
+        b = I2[off2[l]:off2[l + 1], c0:ce]
         for i in range(e1 - s1):
             jj = j[s1 + i]
             if np.isnan(jj):
@@ -1196,7 +1199,8 @@ def propagate_pass(I1, off1, I2, off2, j, start1, step1, a1, a2, gmin, gmax, bas
 
 
 @njit(parallel=True, cache=True)
-def line_matches_to_points(j, cost, max_cost, start1, step1, off1, start2, step2, Kinv1, Kinv2, Rt, c2, min_angle):
+def line_matches_to_points(j, cost, max_cost, start1, step1, off1, start2, step2, Kinv1, Kinv2, Rt, c2, min_angle,
+                           pairs=True):
     """Matched samples -> pixel pairs and midpoint-triangulated points, in line order.
 
     Sample ``i`` of line ``l`` (flat index ``off1[l] + i``) with a finite partner
@@ -1208,6 +1212,8 @@ def line_matches_to_points(j, cost, max_cost, start1, step1, off1, start2, step2
         idx (M,) flat sample index; line (M,); uv1, uv2 (M, 2); X (M, 3) camera-1 frame;
         dist (M,) distance from camera 1; valid (M,) bool: finite, in front of both
         cameras, triangulation angle at least ``min_angle`` radians.
+        With ``pairs`` False, uv2 and X are empty: callers that need only the
+        depths skip writing (and faulting in) 40 bytes a match.
     """
     L = off1.shape[0] - 1
     count = np.zeros(L + 1, np.int64)
@@ -1223,8 +1229,9 @@ def line_matches_to_points(j, cost, max_cost, start1, step1, off1, start2, step2
     idx = np.empty(M, np.int64)
     line = np.empty(M, np.int64)
     uv1 = np.empty((M, 2))
-    uv2 = np.empty((M, 2))
-    X = np.empty((M, 3))
+    P = M if pairs else 0
+    uv2 = np.empty((P, 2))
+    X = np.empty((P, 3))
     dist = np.empty(M)
     valid = np.empty(M, np.bool_)
     cos_max = np.cos(min_angle)
@@ -1244,11 +1251,12 @@ def line_matches_to_points(j, cost, max_cost, start1, step1, off1, start2, step2
             line[p] = l
             uv1[p, 0] = x1
             uv1[p, 1] = y1
-            uv2[p, 0] = x2
-            uv2[p, 1] = y2
-            X[p, 0] = X0
-            X[p, 1] = X1
-            X[p, 2] = X2
+            if pairs:
+                uv2[p, 0] = x2
+                uv2[p, 1] = y2
+                X[p, 0] = X0
+                X[p, 1] = X1
+                X[p, 2] = X2
             dist[p] = np.sqrt(X0 * X0 + X1 * X1 + X2 * X2)
             valid[p] = 1.0 - dot * dot > 1e-12 and s1 > 0 and s2 > 0 and np.isfinite(dist[p]) and dot <= cos_max
             p += 1

@@ -247,37 +247,41 @@ def _prepare(image: np.ndarray, sigma: float, color: bool) -> np.ndarray:
     return img
 
 
-def _inner_lines(I: np.ndarray, neighbours: int, keep: int) -> np.ndarray:
-    """The columns of the centre line and its ``keep`` nearest neighbour lines on each side.
+def _inner_channels(I: np.ndarray, neighbours: int, keep: int) -> tuple[int, int]:
+    """Columns ``c0:c1`` of the centre line and its ``keep`` nearest neighbour lines on each side.
 
     ``I`` is (N, (2 neighbours + 1) C), neighbour-major (:func:`sample_line_channels`).
     """
     if keep >= neighbours:
-        return I
+        return 0, I.shape[1]
     c = I.shape[1] // (2 * neighbours + 1)
-    return np.ascontiguousarray(I[:, (neighbours - keep) * c:(neighbours + keep + 1) * c])
+    return (neighbours - keep) * c, (neighbours + keep + 1) * c
 
 
-def _line_points(j, cost, max_cost: float, min_angle: float, lp: LinePairs, tv: TwoView):
+def _line_points(j, cost, max_cost: float, min_angle: float, lp: LinePairs, tv: TwoView, pairs: bool = True):
     """:func:`kernels.line_matches_to_points` with this pair's line geometry and cameras (``min_angle`` radians)."""
     Rt = np.ascontiguousarray(tv.R.T)
     start1, step1, off1 = lp.side(1)
     start2, step2, _ = lp.side(2)
     return kernels.line_matches_to_points(j, cost, max_cost, start1, step1, off1, start2, step2, np.linalg.inv(tv.K1),
-                                          np.linalg.inv(tv.K2), Rt, -Rt @ np.asarray(tv.t, np.float64), min_angle)
+                                          np.linalg.inv(tv.K2), Rt, -Rt @ np.asarray(tv.t, np.float64), min_angle,
+                                          pairs)
 
 
 def _validated_points(j, cost, lp: LinePairs, tv: TwoView, shape: tuple[int, int], cfg: Config,
-                      median: bool = False):
+                      median: bool = False, pairs: bool = True):
     """Matched samples -> pixel pairs, points and the validity mask (S_p, then the 2-D check).
 
     Returns ``idx, line, uv1, uv2, X, dist, keep, med`` over the matched
     samples (see :func:`kernels.line_matches_to_points`); ``med`` is None,
     or with ``median`` and the 2-D check on, the check's neighbour median of
-    each distance (:func:`neighbour_median`).
+    each distance (:func:`neighbour_median`). ``uv2`` and ``X`` are empty
+    without ``pairs``, and where ``med`` replaces them.
     """
     v = cfg.validity
-    idx, line, uv1, uv2, X, dist, valid = _line_points(j, cost, v.max_cost, np.radians(v.min_tri_angle_deg), lp, tv)
+    median = median and v.neighbour_tol_px > 0
+    idx, line, uv1, uv2, X, dist, valid = _line_points(j, cost, v.max_cost, np.radians(v.min_tri_angle_deg), lp, tv,
+                                                       pairs and not median)
     keep = depth_continuity(dist, line, v.sp_depth_jump, v.sp_min_run, mask=valid)
     med = None
     if v.neighbour_tol_px > 0:
@@ -338,7 +342,7 @@ def propagate(lp: LinePairs, tv: TwoView, I1, I2, j, idx, uv1, dist, keep, alpha
         new |= filled
         # The new matches' points seed the next pass.
         jf = np.where(filled, jv, np.nan)
-        _, _, fuv1, _, _, fdist, fvalid = _line_points(jf, nothing, 1.0, 0.0, lp, tv)
+        _, _, fuv1, _, _, fdist, fvalid = _line_points(jf, nothing, 1.0, 0.0, lp, tv, pairs=False)
         depth_grids(fuv1, fdist, shape, fvalid, grids)
         # Only pixels whose widened range just changed can match in the next
         # pass: a sample that failed with the same range fails again.
@@ -382,6 +386,7 @@ def match_pair(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config, pro
     nb, nstep = cfg.lines.neighbours, cfg.lines.neighbour_step
     I1 = sample_line_channels(f1, lp, tv.K1, np.eye(3), 1, nb, nstep)
     I2 = sample_line_channels(f2, lp, tv.K2, tv.R.T, 2, nb, nstep)
+    del f1, f2
     depths = depth_range(tv, cfg.geometry.depth_margin)
     logger.info("search depths %.3g .. %.3g (baseline %.3g)", depths[0], depths[1], np.linalg.norm(tv.t))
     if coarse is not None:
@@ -424,11 +429,10 @@ def match_pair(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config, pro
         cost[filled] = 0.0
     del lo, hi
     if cfg.dense.subpixel and cfg.dense.subpixel_iterations > 0:
-        R1, R2 = _inner_lines(I1, nb, d.subpixel_neighbours), _inner_lines(I2, nb, d.subpixel_neighbours)
+        c0, c1 = _inner_channels(I1, nb, d.subpixel_neighbours)
         for _ in range(cfg.dense.subpixel_iterations):
-            j, zncc = kernels.refine_subpixel(R1, off1, R2, off2, j, d.subpixel_half_window, 1.0,
-                                              d.subpixel_slope_radius, d.subpixel_min_stretch)
-        del R1, R2
+            j, zncc = kernels.refine_subpixel(I1, off1, I2, off2, j, d.subpixel_half_window, 1.0,
+                                              d.subpixel_slope_radius, d.subpixel_min_stretch, c0, c1)
         # A partner whose window does not correlate is most often a wrong one.
         if min_zncc > -1.0:
             j[zncc < min_zncc] = np.nan
@@ -441,7 +445,9 @@ def match_pair(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config, pro
     dense = np.isfinite(j)
     smooth = cfg.validity.median_depth
     last = cfg.dense.propagate_passes == 0
-    idx, line, uv1, uv2, X, dist, keep, med = _validated_points(j, cost, lp, tv, img1.shape[:2], cfg, smooth and last)
+    # Before propagation only the depths are needed.
+    idx, line, uv1, uv2, X, dist, keep, med = _validated_points(j, cost, lp, tv, img1.shape[:2], cfg, smooth and last,
+                                                                pairs=last)
     timings["validity"] = time.perf_counter() - t0
 
     n_propagated = 0
