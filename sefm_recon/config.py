@@ -90,6 +90,9 @@ class DenseConfig:
     fill_radius: int = 3  #: search this many samples around the interpolated partner
     fill_half_window: int = 3  #: ZNCC window half length (all neighbour-line channels)
     fill_min_zncc: float = 0.9  #: correlation a filled match needs
+    #: a gap whose partners span over this many times fewer or more samples than it has is a
+    #: depth edge and is not filled (0 = fill every gap)
+    fill_max_scale: float = 3.0
     propagate_passes: int = 8  #: grow valid matches into unmatched neighbours this many times (0 = off)
     propagate_radius: int = 1  #: px around a sample whose valid matches bound its band
     propagate_width: int = 6  #: ...when that band is at most this many samples wide
@@ -97,6 +100,9 @@ class DenseConfig:
     #: propagation also tries the window moved this many samples to either side (0 = centred only):
     #: next to a depth edge the centred window straddles it
     propagate_window_shift: int = 3
+    #: ...but not across an intensity step larger than this (levels of the channel mean between
+    #: neighbouring samples; 0 = no limit): an occluded sample would take the other side's depth
+    propagate_shift_max_step: float = 12.0
 
 
 @dataclass
@@ -214,6 +220,8 @@ _LIMITS: dict[str, tuple[float | None, float | None, bool]] = {
     "dense.single_min_zncc": (-1, 1, False),
     "dense.subpixel_slope_radius": (0, 64, False),
     "dense.propagate_window_shift": (0, 64, False),
+    "dense.propagate_shift_max_step": (0, None, False),
+    "dense.fill_max_scale": (0, None, False),
     "dense.subpixel_min_stretch": (0, 1, False),
     "dense.reverse_max_size": (0, None, False),
     "geometry.min_inliers": (5, None, False),

@@ -323,13 +323,56 @@ def test_shifted_window_matches_a_sample_next_to_a_depth_edge():
     assert z > 0.99 and pos == pytest.approx(86.0, abs=0.5)
 
 
-def test_fill_from_band_finds_the_shift_inside_a_narrow_band():
-    rng = np.random.default_rng(2)
-    n = 200
+
+def test_shifted_window_does_not_cross_an_intensity_step():
+    # line 1: background up to sample 49, a bright foreground from 50; in line 2
+    # the foreground moved by -6 samples and the background by -2, so background
+    # samples 46-49 are hidden behind the foreground in view 2
+    rng = np.random.default_rng(3)
+    bg = rng.normal(size=(60, 3))
+    fg = rng.normal(size=(120, 3)) + 6.0  # a step of 6 on a texture of 1
+    a = np.concatenate([bg[:50], fg[50:110]]).astype(np.float32)
+    b = np.concatenate([bg[2:46], fg[50:110]]).astype(np.float32)  # b[k] = bg[k + 2] (k < 44), fg[k + 6]
+    i = 49  # occluded in view 2
+    # moved 3 samples into the foreground (windows of 5), the window finds the
+    # foreground's partner: the hidden sample would take the foreground's depth
+    centred, _ = mk._zncc_search(a, i, b, 40.0, 7, 2, 0.98, 0)
+    z, pos = mk._zncc_search(a, i, b, 40.0, 7, 2, 0.98, 3)
+    assert centred < 0.98 < z and pos == pytest.approx(43.0, abs=0.5)
+    # with the step limit it is not moved across the edge, and stays unmatched
+    z, _ = mk._zncc_search(a, i, b, 40.0, 7, 2, 0.98, 3, 4.0)
+    assert z < 0.98
+    # a foreground sample next to the edge still moves its window into the foreground
+    z, pos = mk._zncc_search(a, 50, b, 40.0, 7, 2, 0.98, 3, 4.0)
+    assert z > 0.98 and pos == pytest.approx(44.0, abs=0.5)
+
+
+def _shifted_line(seed: int, n: int):
+    """One line pair of white noise, line-1 sample i being line-2 sample i + 4: a, off, b, off2."""
+    rng = np.random.default_rng(seed)
     b = np.repeat(rng.normal(size=(n + 10, 1)), 3, axis=1).astype(np.float32)
-    a = b[4:n + 4].copy()  # line-1 sample i is line-2 sample i + 4
-    off = np.array([0, n], np.int64)
-    off2 = np.array([0, n + 10], np.int64)
+    return b[4:n + 4].copy(), np.array([0, n], np.int64), b, np.array([0, n + 10], np.int64)
+
+
+def test_gap_filling_leaves_depth_edges_alone():
+    n = 120
+    a, off, b, off2 = _shifted_line(4, n)
+    j = np.full(n, np.nan)
+    # a fold: 20 samples between partners 2 apart (a depth edge), then a surface gap
+    j[10], j[30] = 14.0, 16.0
+    j[60], j[80] = 64.0, 84.0
+    fold = np.arange(11, 30)
+    _, ffree = mk.fill_gaps(a, off, b, off2, j, 64, 3, 3, 0.9)
+    assert ffree[fold].any()  # unlimited, the fold's samples near its ends find partners
+    out, filled = mk.fill_gaps(a, off, b, off2, j, 64, 3, 3, 0.9, 3.0)
+    assert not filled[fold].any()
+    assert filled[61:80].all()
+    np.testing.assert_array_equal(np.rint(out[61:80]), np.arange(61, 80) + 4.0)
+
+
+def test_fill_from_band_finds_the_shift_inside_a_narrow_band():
+    n = 200
+    a, off, b, off2 = _shifted_line(2, n)
     j = np.full(n, np.nan)
     lo = np.arange(n, dtype=np.int64) + 1
     hi = lo + 8

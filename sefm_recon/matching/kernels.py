@@ -893,15 +893,37 @@ def _ncc(sxy, sx, sy, syy, vx, m):
 
 
 @njit(cache=True)
-def _zncc_search(a, i, b, first, n, half, min_zncc, shift=0):
+def _max_step(a, i, sh):
+    """Largest change of the channel mean between consecutive samples from ``i`` to ``i + sh``."""
+    C = a.shape[1]
+    lo = min(i, i + sh)
+    hi = max(i, i + sh)
+    prev = 0.0
+    for c in range(C):
+        prev += a[lo, c]
+    out = 0.0
+    for k in range(lo + 1, hi + 1):
+        m = 0.0
+        for c in range(C):
+            m += a[k, c]
+        out = max(out, abs(m - prev) / C)
+        prev = m
+    return out
+
+
+@njit(cache=True)
+def _zncc_search(a, i, b, first, n, half, min_zncc, shift=0, max_step=np.inf):
     """Best ZNCC of ``a[i]``'s window over line-2 positions ``first + d``, d = 0..n-1.
 
     With ``shift`` > 0 the window may also be moved ``shift`` samples to
     either side (the same move on both lines; the best of the three counts),
     so a sample next to a depth edge is judged on the side of the edge it
-    belongs to. A best position reaching ``min_zncc`` is refined by a
-    parabola through its neighbours (by at most half a sample). Returns
-    (best ZNCC, position).
+    belongs to. A window is moved only where the samples between ``i`` and
+    its new centre change by at most ``max_step`` from one to the next: a
+    window moved across an intensity edge judges the other side's surface,
+    whose depth a sample of this side (occluded in view 2) would take. A
+    best position reaching ``min_zncc`` is refined by a parabola through its
+    neighbours (by at most half a sample). Returns (best ZNCC, position).
     """
     best = -2.0
     bj = first
@@ -914,6 +936,8 @@ def _zncc_search(a, i, b, first, n, half, min_zncc, shift=0):
     if best < min_zncc and shift > 0:  # the centred window failed: try the shifted ones
         for sh in (-shift, shift):
             if not 0 <= i + sh < a.shape[0]:
+                continue
+            if max_step < np.inf and _max_step(a, i, sh) > max_step:
                 continue
             for d in range(n):
                 z = _zncc(a, i + sh, b, first + d + sh, half)
@@ -933,15 +957,18 @@ def _zncc_search(a, i, b, first, n, half, min_zncc, shift=0):
 
 
 @njit(parallel=True, cache=True)
-def fill_gaps(I1, off1, I2, off2, j, max_gap, radius, half, min_zncc):
+def fill_gaps(I1, off1, I2, off2, j, max_gap, radius, half, min_zncc, max_scale=np.inf):
     """Fill short gaps of unmatched samples between matched ones on each line.
 
     The partner of a sample in a gap is predicted by interpolating its matched
     neighbours on the line, then searched within ``radius`` samples of the
     prediction by ZNCC over the window of ``2 half + 1`` samples and all
     channels (the neighbour lines: a 2-D patch), refined by a parabola.
-    Accepted when the correlation reaches ``min_zncc``. Returns the filled
-    copy of ``j`` and a mask of the filled samples.
+    Accepted when the correlation reaches ``min_zncc``. A gap whose partners
+    span more than ``max_scale`` times fewer (or more) line-2 samples than it
+    has is a depth edge, not a surface: its samples are occluded in one view
+    and the interpolation would put them on the wrong surface; it is left
+    alone. Returns the filled copy of ``j`` and a mask of the filled samples.
     """
     L = off1.shape[0] - 1
     out = j.copy()
@@ -959,7 +986,7 @@ def fill_gaps(I1, off1, I2, off2, j, max_gap, radius, half, min_zncc):
             if prev >= 0 and i < n and 1 < i - prev <= max_gap + 1:
                 j0 = j[s1 + prev]
                 j1 = j[s1 + i]
-                if j1 > j0:
+                if j1 > j0 and max_scale * (j1 - j0) >= i - prev and j1 - j0 <= max_scale * (i - prev):
                     for g in range(prev + 1, i):
                         pred = j0 + (j1 - j0) * (g - prev) / (i - prev)
                         best, pos = _zncc_search(a, g, b, pred - radius, 2 * radius + 1, half, min_zncc)
@@ -1154,7 +1181,7 @@ def fill_from_band(I1, off1, I2, off2, j, lo, hi, max_width, half, min_zncc):
 
 @njit(parallel=True, cache=True)
 def propagate_pass(I1, off1, I2, off2, j, start1, step1, a1, a2, gmin, gmax, baseline, slack, max_width, half,
-                   min_zncc, shift, active):
+                   min_zncc, shift, active, max_step=np.inf):
     """One propagation pass: match unmatched samples inside the depth range of the matches around them.
 
     Sample ``k`` of line ``l`` (at ``start1[l] + k step1[l]``, COLMAP pixels of
@@ -1191,7 +1218,7 @@ def propagate_pass(I1, off1, I2, off2, j, start1, step1, a1, a2, gmin, gmax, bas
             lo, hi, ga, gb = sample_band(a1[i], a2, s2, e2, gmin[r, c], gmax[r, c], baseline, slack, ga, gb)
             if hi < lo or hi - lo + 1 > max_width:
                 continue
-            best, pos = _zncc_search(a, k, b, float(lo), hi - lo + 1, half, min_zncc, shift)
+            best, pos = _zncc_search(a, k, b, float(lo), hi - lo + 1, half, min_zncc, shift, max_step)
             if best >= min_zncc:
                 out[i] = pos
                 filled[i] = True

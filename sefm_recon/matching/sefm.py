@@ -336,7 +336,8 @@ def propagate(lp: LinePairs, tv: TwoView, I1, I2, j, idx, uv1, dist, keep, alpha
         # One sample of slack: the neighbours' depths are fine-level ones.
         jv, filled = kernels.propagate_pass(I1, lp.offset1, I2, lp.offset2, jv, start1, step1, *alphas, gmin, gmax,
                                             baseline, 1, d.propagate_width, d.fill_half_window,
-                                            d.propagate_min_zncc, d.propagate_window_shift, active)
+                                            d.propagate_min_zncc, d.propagate_window_shift, active,
+                                            d.propagate_shift_max_step if d.propagate_shift_max_step > 0 else np.inf)
         if not filled.any():
             break
         new |= filled
@@ -421,7 +422,8 @@ def match_pair(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config, pro
         del lo21, hi21, i21
     if cfg.dense.fill_max_gap > 0:
         j, filled = kernels.fill_gaps(I1, off1, I2, off2, j, cfg.dense.fill_max_gap, cfg.dense.fill_radius,
-                                      cfg.dense.fill_half_window, cfg.dense.fill_min_zncc)
+                                      cfg.dense.fill_half_window, cfg.dense.fill_min_zncc,
+                                      d.fill_max_scale if d.fill_max_scale > 0 else np.inf)
         cost[filled] = 0.0
     if coarse is not None and cfg.pyramid.fill_width > 0:
         j, filled = kernels.fill_from_band(I1, off1, I2, off2, j, lo, hi, cfg.pyramid.fill_width,
