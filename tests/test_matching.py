@@ -1,5 +1,6 @@
 """The SeFM stages on sequences with known answers."""
 
+import cv2
 import numpy as np
 
 from sefm_recon.matching import dense, rough
@@ -147,3 +148,14 @@ def test_refinement_window_keeps_the_centre_line_and_its_nearest_neighbours():
     c0, c1 = _inner_channels(I, 2, 0)
     np.testing.assert_array_equal(I[:, c0:c1], [[0, 1]])
     assert _inner_channels(I, 2, 2) == _inner_channels(I, 2, 5) == (0, 10)
+
+
+def test_prepared_image_equals_the_whole_image_conversion():
+    from sefm_recon.matching.sefm import _prepare
+
+    # converted in blocks of rows, blurred in place: the same values as in one go
+    rng = np.random.default_rng(0)
+    img = rng.integers(0, 256, (600, 410, 3), dtype=np.uint8)
+    want = cv2.GaussianBlur(cv2.cvtColor(img.astype(np.float32), cv2.COLOR_RGB2GRAY), (0, 0), 0.7)
+    np.testing.assert_array_equal(_prepare(img, 0.7, False), want)
+    np.testing.assert_array_equal(_prepare(img, 0.0, True), img.astype(np.float32))

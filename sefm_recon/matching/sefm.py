@@ -239,11 +239,16 @@ def _match_direction(Ia, offa, Ib, offb, lo, hi, cfg: Config, jump: float, bar=N
 
 
 def _prepare(image: np.ndarray, sigma: float, color: bool) -> np.ndarray:
-    img = image.astype(np.float32)
-    if img.ndim == 3 and not color:
-        img = cv2.cvtColor(img, cv2.COLOR_RGB2GRAY)
+    """The image as float32 (grey unless ``color``), blurred by ``sigma`` px."""
+    if image.ndim == 3 and not color:
+        # Converted in blocks of rows: a float copy of all three channels is 3x the result.
+        img = np.empty(image.shape[:2], np.float32)
+        for r in range(0, image.shape[0], 256):
+            img[r:r + 256] = cv2.cvtColor(image[r:r + 256].astype(np.float32), cv2.COLOR_RGB2GRAY)
+    else:
+        img = image.astype(np.float32)
     if sigma > 0:
-        img = cv2.GaussianBlur(img, (0, 0), sigma)
+        cv2.GaussianBlur(img, (0, 0), sigma, dst=img)
     return img
 
 
