@@ -368,6 +368,13 @@ def test_gap_filling_leaves_depth_edges_alone():
     assert not filled[fold].any()
     assert filled[61:80].all()
     np.testing.assert_array_equal(np.rint(out[61:80]), np.arange(61, 80) + 4.0)
+    # the band fill skips the fold's samples too (when asked), and fills the others
+    lo = np.arange(n, dtype=np.int64) + 1
+    hi = lo + 8
+    _, gfilled = mk.fill_from_band(a, off, b, off2, j, lo, hi, 12, 3, 0.9, 3.0)
+    assert not gfilled[fold].any() and gfilled[40:55].all()
+    _, ufilled = mk.fill_from_band(a, off, b, off2, j, lo, hi, 12, 3, 0.9)
+    assert ufilled[fold].all()
 
 
 def test_fill_from_band_finds_the_shift_inside_a_narrow_band():

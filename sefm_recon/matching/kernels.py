@@ -1150,13 +1150,15 @@ def ray_angles(Minv, basis, xy):
 
 
 @njit(parallel=True, cache=True)
-def fill_from_band(I1, off1, I2, off2, j, lo, hi, max_width, half, min_zncc):
+def fill_from_band(I1, off1, I2, off2, j, lo, hi, max_width, half, min_zncc, max_scale=np.inf):
     """Match unmatched samples whose search band is narrow (a coarser level bounded it).
 
     Where the band ``[lo, hi]`` of line-2 positions spans at most ``max_width``
     samples, the partner is the band's best ZNCC over the window of ``2 half + 1``
     samples and all channels, refined by a parabola, accepted when the
-    correlation reaches ``min_zncc``. Returns the filled copy of ``j`` and a
+    correlation reaches ``min_zncc``. Samples in a gap between matches that is
+    a depth edge (see :func:`fill_gaps`, ``max_scale``) are left alone: the
+    band spans both surfaces there. Returns the filled copy of ``j`` and a
     mask of the filled samples.
     """
     L = off1.shape[0] - 1
@@ -1167,9 +1169,23 @@ def fill_from_band(I1, off1, I2, off2, j, lo, hi, max_width, half, min_zncc):
         s1 = off1[l]
         a = I1[s1:off1[l + 1]]
         b = I2[off2[l]:off2[l + 1]]
-        for i in range(off1[l + 1] - s1):
-            if not np.isnan(j[s1 + i]) or hi[s1 + i] < lo[s1 + i] or hi[s1 + i] - lo[s1 + i] + 1 > max_width:
+        n = off1[l + 1] - s1
+        # The next matched sample of every sample (for the gap test), filled right to left.
+        nxt = np.full(n, -1, np.int64)
+        if max_scale < np.inf:
+            for i in range(n - 2, -1, -1):
+                nxt[i] = i + 1 if not np.isnan(j[s1 + i + 1]) else nxt[i + 1]
+        prv = -1
+        for i in range(n):
+            if not np.isnan(j[s1 + i]):
+                prv = i
                 continue
+            if hi[s1 + i] < lo[s1 + i] or hi[s1 + i] - lo[s1 + i] + 1 > max_width:
+                continue
+            if prv >= 0 and nxt[i] >= 0:
+                span = j[s1 + nxt[i]] - j[s1 + prv]
+                if max_scale * span < nxt[i] - prv or span > max_scale * (nxt[i] - prv):
+                    continue
             best, pos = _zncc_search(a, i, b, float(lo[s1 + i]), hi[s1 + i] - lo[s1 + i] + 1, half,
                                      min_zncc)
             if best < min_zncc:
