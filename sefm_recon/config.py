@@ -101,7 +101,8 @@ class DenseConfig:
     #: next to a depth edge the centred window straddles it
     propagate_window_shift: int = 3
     #: ...but not across an intensity step larger than this (levels of the channel mean between
-    #: neighbouring samples; 0 = no limit): an occluded sample would take the other side's depth
+    #: neighbouring samples at rough.jump_reference_size, less in proportion on larger photos;
+    #: 0 = no limit): an occluded sample would take the other side's depth
     propagate_shift_max_step: float = 12.0
 
 

@@ -110,6 +110,21 @@ def test_depth_continuity_drops_spikes_but_keeps_steps():
                                                    mask=np.array([True, False, True, False])), [False] * 4)
 
 
+def test_propagation_step_limit_shrinks_with_the_photo_size():
+    import dataclasses
+
+    from sefm_recon.config import load_config
+    from sefm_recon.matching import sefm
+
+    cfg = load_config(None, [])
+    step = cfg.dense.propagate_shift_max_step
+    assert step > 0
+    # an edge spreads over twice the samples at twice the size: half the step between them
+    assert sefm.shift_max_step(cfg, 800) == sefm.shift_max_step(cfg, 1000) == step
+    assert sefm.shift_max_step(cfg, 2000) == step / 2
+    off = dataclasses.replace(cfg, dense=dataclasses.replace(cfg.dense, propagate_shift_max_step=0.0))
+    assert sefm.shift_max_step(off, 2000) == np.inf
+
 def test_jump_threshold_shrinks_with_the_photo_size_and_coarse_levels_keep_it(monkeypatch):
     import dataclasses
 

@@ -212,6 +212,22 @@ def jump_threshold(cfg: Config, longest: int) -> float:
     return r.jump_threshold
 
 
+def shift_max_step(cfg: Config, longest: int) -> float:
+    """The intensity step (grey levels between neighbouring samples) a propagation window is not moved across.
+
+    ``dense.propagate_shift_max_step`` (inf when 0), scaled as the key-point
+    threshold (:func:`jump_threshold`): at twice the resolution an edge is
+    spread over twice the samples, with half the step between neighbours.
+    """
+    step = cfg.dense.propagate_shift_max_step
+    if step <= 0:
+        return np.inf
+    r = cfg.rough
+    if r.jump_reference_size > 0 and longest > r.jump_reference_size:
+        step *= r.jump_reference_size / longest
+    return float(step)
+
+
 def _match_direction(Ia, offa, Ib, offb, lo, hi, cfg: Config, jump: float, bar=None):
     """Run the line kernel over all line pairs, in chunks (for the progress bar)."""
     n = len(offa) - 1
@@ -310,7 +326,7 @@ def _at_distance(uv1: np.ndarray, dist: np.ndarray, tv: TwoView):
 
 
 def propagate(lp: LinePairs, tv: TwoView, I1, I2, j, idx, uv1, dist, keep, alphas, shape: tuple[int, int],
-              cfg: Config):
+              cfg: Config, max_step: float = np.inf):
     """Grow the valid matches into their unmatched neighbours (2-D, across line pairs).
 
     Every sample without a valid match gets the depth range of the matches
@@ -319,7 +335,8 @@ def propagate(lp: LinePairs, tv: TwoView, I1, I2, j, idx, uv1, dist, keep, alpha
     best ZNCC at ``dense.propagate_min_zncc`` or more (as the coarse-band
     fill; where the centred window fails, windows moved
     ``dense.propagate_window_shift`` samples to either side are tried, for
-    samples next to a depth edge). Scanline DP leaves gaps where one line alone was ambiguous; the
+    samples next to a depth edge, but not across an intensity step over
+    ``max_step``: :func:`shift_max_step`). Scanline DP leaves gaps where one line alone was ambiguous; the
     lines beside it often matched there. Each of the ``dense.propagate_passes``
     passes grows from the valid matches and the previous passes' new ones;
     the caller validates the result once. Returns the new ``j`` (invalid
@@ -341,8 +358,7 @@ def propagate(lp: LinePairs, tv: TwoView, I1, I2, j, idx, uv1, dist, keep, alpha
         # One sample of slack: the neighbours' depths are fine-level ones.
         jv, filled = kernels.propagate_pass(I1, lp.offset1, I2, lp.offset2, jv, start1, step1, *alphas, gmin, gmax,
                                             baseline, 1, d.propagate_width, d.fill_half_window,
-                                            d.propagate_min_zncc, d.propagate_window_shift, active,
-                                            d.propagate_shift_max_step if d.propagate_shift_max_step > 0 else np.inf)
+                                            d.propagate_min_zncc, d.propagate_window_shift, active, max_step)
         if not filled.any():
             break
         new |= filled
@@ -464,7 +480,8 @@ def match_pair(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config, pro
     n_propagated = 0
     if cfg.dense.propagate_passes > 0:
         t0 = time.perf_counter()
-        j, new = propagate(lp, tv, I1, I2, j, idx, uv1, dist, keep, alphas, img1.shape[:2], cfg)
+        j, new = propagate(lp, tv, I1, I2, j, idx, uv1, dist, keep, alphas, img1.shape[:2], cfg,
+                           shift_max_step(cfg, max(size1 + size2)))
         del idx, line, uv1, uv2, X, dist, keep, med
         cost[new] = 0.0
         n_propagated = int(new.sum())
