@@ -166,6 +166,8 @@ def align_keypoints(p, q, desc1, desc2, lo, hi, max_dist):
             if left_s > best:
                 best = left_s
                 bo = left_o
+            # Squared distance, abandoned once past max_dist: most pairs in
+            # the band are far apart, and the descriptors are long.
             d2 = 0.0
             for c in range(D):
                 diff = desc1[i, c] - desc2[j, c]
