@@ -89,6 +89,25 @@ def test_depth_band_and_its_inverse_match_references():
                 assert first[s2 + k] == ok[0] and last[s2 + k] == ok[-1]
 
 
+def test_coarse_band_in_one_pass_equals_bounds_then_band():
+    from sefm_recon.matching.sefm import coarse_search_band
+
+    R, t, lp = _lp()
+    tv = TwoView(K, K, R, t)
+    alphas = line_alphas(lp, K, np.eye(3), 1), line_alphas(lp, K, R.T, 2)
+    rng = np.random.default_rng(1)
+
+    class Coarse:  # coarse matches on a third of the reduced image, at 2-6 m
+        uv1 = rng.uniform(0, (SIZE[0] // 2, SIZE[1] // 2), (3000, 2))
+        xyz = rng.normal(size=(3000, 3)) * 0.1 + [0.0, 0.0, 4.0]
+
+    level = CoarseLevel(Coarse, (0.5, 0.5), (SIZE[1] // 2, SIZE[0] // 2))
+    want = search_band(lp, tv, coarse_depth_bounds(lp, level, 1, (1.0, np.inf)), 3, alphas)
+    got = coarse_search_band(lp, tv, level, 1, (1.0, np.inf), 3, alphas)
+    np.testing.assert_array_equal(got[0], want[0])
+    np.testing.assert_array_equal(got[1], want[1])
+    assert (want[1] - want[0] < 40).mean() > 0.2  # some bands narrowed by the coarse depths
+
 def test_coarse_bounds_follow_the_coarse_depths_and_fall_back_elsewhere():
     R, t, lp = _lp()
 

@@ -193,22 +193,31 @@ def sample_band(alpha1, a2, s2, e2, dmin, dmax, baseline, slack, ga, gb):
 
 
 @njit(parallel=True, cache=True)
-def depth_band(a1, off1, a2, off2, dmin, dmax, baseline, slack):
+def depth_band(a1, off1, a2, off2, dmin, dmax, baseline, slack, start, step, sx, sy, gmin, gmax):
     """For each line-1 sample, the line-2 sample range holding points at distances [dmin, dmax].
 
     A point at distance ``d`` along the ray of angle ``a1`` is seen from camera 2
     under ``a2 = atan2(d sin a1, d cos a1 - B)``, falling from pi (d = 0) to
     ``a1`` (d = inf); ``a2`` increases along each line 2.
 
+    The range of sample ``k`` of line ``l`` (at ``start[l] + k step[l]``,
+    COLMAP pixels of image 1) is cell ``floor(x sx), floor(y sy)`` of the
+    ``gmin``/``gmax`` grids (a coarser level's, :func:`lookup_depth_bounds`)
+    where it is finite, else ``dmin``/``dmax``. Read here and used at once, so
+    no (N1,) range arrays are made: fresh memory is what a large pair pays
+    most for. A 1x1 grid of inf leaves every sample its ``dmin``/``dmax``.
+
     Args:
         a1, a2: (N1,), (N2,) sample ray angles.
-        dmin, dmax: (N1,) distance range per sample (``dmax`` may be inf).
+        dmin, dmax: (N1,) distance range per sample (``dmax`` may be inf;
+            a broadcast view is fine).
     Returns:
         lo, hi (N1,) int64 positions on line 2 relative to its start, widened
         by ``slack`` samples and clipped (``hi < lo`` when empty).
     """
     L = off1.shape[0] - 1
     N1 = a1.shape[0]
+    H, W = gmin.shape
     lo = np.empty(N1, np.int64)
     hi = np.empty(N1, np.int64)
     for ll in prange(L):
@@ -217,8 +226,16 @@ def depth_band(a1, off1, a2, off2, dmin, dmax, baseline, slack):
         e2 = off2[l + 1]
         ga = s2
         gb = s2
-        for i in range(off1[l], off1[l + 1]):
-            lo[i], hi[i], ga, gb = sample_band(a1[i], a2, s2, e2, dmin[i], dmax[i], baseline, slack, ga, gb)
+        for k in range(off1[l + 1] - off1[l]):
+            i = off1[l] + k
+            c = min(max(int(np.floor((start[l, 0] + k * step[l, 0]) * sx)), 0), W - 1)
+            r = min(max(int(np.floor((start[l, 1] + k * step[l, 1]) * sy)), 0), H - 1)
+            d0 = np.float64(dmin[i])
+            d1 = np.float64(dmax[i])
+            if np.isfinite(gmin[r, c]):
+                d0 = np.float64(gmin[r, c])
+                d1 = np.float64(gmax[r, c])
+            lo[i], hi[i], ga, gb = sample_band(a1[i], a2, s2, e2, d0, d1, baseline, slack, ga, gb)
     return lo, hi
 
 

@@ -61,23 +61,32 @@ def sample_alphas(lp: LinePairs, tv: TwoView) -> tuple[np.ndarray, np.ndarray]:
     return line_alphas(lp, tv.K1, np.eye(3), 1), line_alphas(lp, tv.K2, tv.R.T, 2)
 
 
-def search_band(lp: LinePairs, tv: TwoView, depths, slack: int,
-                alphas: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
+def search_band(lp: LinePairs, tv: TwoView, depths, slack: int, alphas: tuple[np.ndarray, np.ndarray] | None = None,
+                grid: tuple[np.ndarray, np.ndarray, tuple[float, float]] | None = None
+                ) -> tuple[np.ndarray, np.ndarray]:
     """For each line-1 sample, the line-2 sample range holding points at the given depths.
 
     ``depths`` is ``(dmin, dmax)``: distances from camera 1, scalars for the
-    whole image or (N1,) arrays, one range per line-1 sample (from a coarser
-    level). Returns ``lo, hi`` (N1,) int64 positions on line 2, relative to its
-    start, widened by ``slack`` samples (``hi < lo`` where the range is empty).
+    whole image or (N1,) arrays, one range per line-1 sample. With ``grid``
+    ``(gmin, gmax, (sx, sy))``, a coarser level's (widened) depth grids and
+    the scale of image 1 to them, a sample whose grid cell holds a range
+    takes that one instead (:func:`coarse_search_band`). Returns ``lo, hi``
+    (N1,) int64 positions on line 2, relative to its start, widened by
+    ``slack`` samples (``hi < lo`` where the range is empty).
     """
     from ..geometry.kernels import depth_band
 
     a1, a2 = alphas if alphas is not None else sample_alphas(lp, tv)
     n1 = len(a1)
+    # Views, not copies: scalars are read through a zero stride.
     dmin = np.broadcast_to(np.asarray(depths[0], np.float64), (n1,))
     dmax = np.broadcast_to(np.asarray(depths[1], np.float64), (n1,))
-    return depth_band(a1, lp.offset1, a2, lp.offset2, np.ascontiguousarray(dmin), np.ascontiguousarray(dmax),
-                      float(np.linalg.norm(tv.t)), int(slack))
+    if grid is None:
+        grid = (np.full((1, 1), np.inf, np.float32), np.full((1, 1), -np.inf, np.float32), (0.0, 0.0))
+    gmin, gmax, (sx, sy) = grid
+    start1, step1, _ = lp.side(1)
+    return depth_band(a1, lp.offset1, a2, lp.offset2, dmin, dmax, float(np.linalg.norm(tv.t)), int(slack),
+                      start1, step1, float(sx), float(sy), gmin, gmax)
 
 
 def invert_band(lo: np.ndarray, hi: np.ndarray, off1: np.ndarray, off2: np.ndarray):
@@ -197,6 +206,14 @@ def coarse_depth_bounds(lp: LinePairs, coarse: CoarseLevel, radius: int, depths:
     dm = coarse.matches
     grids = depth_grids(dm.uv1, np.linalg.norm(dm.xyz, axis=1), coarse.shape)
     return grid_depth_bounds(lp, grids, coarse.scale, radius, depths)
+
+
+def coarse_search_band(lp: LinePairs, tv: TwoView, coarse: CoarseLevel, radius: int, depths: tuple[float, float],
+                       slack: int, alphas: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`search_band` of the :func:`coarse_depth_bounds` ranges, without making them (the same ``lo, hi``)."""
+    dm = coarse.matches
+    gmin, gmax = _widen(depth_grids(dm.uv1, np.linalg.norm(dm.xyz, axis=1), coarse.shape), radius)
+    return search_band(lp, tv, depths, slack, alphas, (gmin, gmax, coarse.scale))
 
 
 def jump_threshold(cfg: Config, longest: int) -> float:
@@ -412,8 +429,9 @@ def match_pair(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config, pro
     depths = depth_range(tv, cfg.geometry.depth_margin)
     logger.info("search depths %.3g .. %.3g (baseline %.3g)", depths[0], depths[1], np.linalg.norm(tv.t))
     if coarse is not None:
-        depths = coarse_depth_bounds(lp, coarse, cfg.pyramid.radius, depths)
-    lo, hi = search_band(lp, tv, depths, cfg.rough.band_slack, alphas)
+        lo, hi = coarse_search_band(lp, tv, coarse, cfg.pyramid.radius, depths, cfg.rough.band_slack, alphas)
+    else:
+        lo, hi = search_band(lp, tv, depths, cfg.rough.band_slack, alphas)
     # Big temporaries are dropped as soon as they are used up, so later stages
     # reuse their memory instead of paying page faults on fresh memory
     # (measured: README, speed).
