@@ -500,7 +500,8 @@ def match_pair(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config, pro
         t0 = time.perf_counter()
         j, new = propagate(lp, tv, I1, I2, j, idx, uv1, dist, keep, alphas, img1.shape[:2], cfg,
                            shift_max_step(cfg, max(size1 + size2)))
-        del idx, line, uv1, uv2, X, dist, keep, med
+        # The line samples and ray angles are used up: the last validation reuses their memory.
+        del idx, line, uv1, uv2, X, dist, keep, med, I1, I2, alphas
         cost[new] = 0.0
         n_propagated = int(new.sum())
         idx, line, uv1, uv2, X, dist, keep, med = _validated_points(j, cost, lp, tv, img1.shape[:2], cfg, smooth)
@@ -518,7 +519,7 @@ def match_pair(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config, pro
         uv2, X = uv2.take(ki, axis=0), X.take(ki, axis=0)
     counts = {
         "line_pairs": int(len(lp)),
-        "samples": int(len(I1)),
+        "samples": int(lp.offset1[-1]),
         "keypoints": int(stats[:, 0].sum()),
         "rough_matches": int(stats[:, 2].sum()),
         "segments": int(stats[:, 4].sum()),
