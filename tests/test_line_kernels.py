@@ -7,7 +7,7 @@ import pytest
 from sefm_recon.geometry import kernels as gk
 from sefm_recon.geometry.epipolar import line_alphas, line_pairs, ray_angles, sample_line_channels
 from sefm_recon.matching import kernels as mk
-from sefm_recon.matching.sefm import CoarseLevel, coarse_depth_bounds, invert_band, search_band
+from sefm_recon.matching.sefm import CoarseLevel, _widen, depth_grids, invert_band, search_band
 from sefm_recon.geometry.two_view import TwoView
 
 from .conftest import rot_y
@@ -89,6 +89,24 @@ def test_depth_band_and_its_inverse_match_references():
                 assert first[s2 + k] == ok[0] and last[s2 + k] == ok[-1]
 
 
+def _grid_bounds(lp, gmin, gmax, scale, depths):
+    """Reference: each line-1 sample's distance range from the grid cell under it, else ``depths`` (numpy)."""
+    pts = lp.all_points1()
+    H, W = gmin.shape
+    c = np.clip(np.floor(pts[:, 0] * scale[0]).astype(int), 0, W - 1)
+    r = np.clip(np.floor(pts[:, 1] * scale[1]).astype(int), 0, H - 1)
+    known = np.isfinite(gmin[r, c])
+    return (np.where(known, gmin[r, c], depths[0]).astype(np.float64),
+            np.where(known, gmax[r, c], depths[1]).astype(np.float64))
+
+
+def _coarse_bounds(lp, coarse, radius, depths):
+    """Reference ranges of :func:`coarse_search_band`: the coarse matches' widened grids, read under each sample."""
+    dm = coarse.matches
+    grids = _widen(depth_grids(dm.uv1, np.linalg.norm(dm.xyz, axis=1), coarse.shape), radius)
+    return _grid_bounds(lp, *grids, coarse.scale, depths)
+
+
 def test_coarse_band_in_one_pass_equals_bounds_then_band():
     from sefm_recon.matching.sefm import coarse_search_band
 
@@ -102,21 +120,25 @@ def test_coarse_band_in_one_pass_equals_bounds_then_band():
         xyz = rng.normal(size=(3000, 3)) * 0.1 + [0.0, 0.0, 4.0]
 
     level = CoarseLevel(Coarse, (0.5, 0.5), (SIZE[1] // 2, SIZE[0] // 2))
-    want = search_band(lp, tv, coarse_depth_bounds(lp, level, 1, (1.0, np.inf)), 3, alphas)
+    want = search_band(lp, tv, _coarse_bounds(lp, level, 1, (1.0, np.inf)), 3, alphas)
     got = coarse_search_band(lp, tv, level, 1, (1.0, np.inf), 3, alphas)
     np.testing.assert_array_equal(got[0], want[0])
     np.testing.assert_array_equal(got[1], want[1])
     assert (want[1] - want[0] < 40).mean() > 0.2  # some bands narrowed by the coarse depths
 
+
 def test_coarse_bounds_follow_the_coarse_depths_and_fall_back_elsewhere():
+    from sefm_recon.matching.sefm import coarse_search_band
+
     R, t, lp = _lp()
 
-    class Coarse:  # the two fields coarse_depth_bounds reads
+    class Coarse:  # the two fields the coarse band reads
         uv1 = np.array([[100.25, 100.25], [101.25, 100.25]])
         xyz = np.array([[0.0, 0.0, 3.0], [0.0, 0.0, 5.0]])
 
     shape = (SIZE[1] // 2, SIZE[0] // 2)
-    dmin, dmax = coarse_depth_bounds(lp, CoarseLevel(Coarse, (0.5, 0.5), shape), 1, (1.0, np.inf))
+    level = CoarseLevel(Coarse, (0.5, 0.5), shape)
+    dmin, dmax = _coarse_bounds(lp, level, 1, (1.0, np.inf))
     pts = lp.all_points1() * 0.5
     near = (np.abs(np.floor(pts[:, 0]) - 100.5) <= 1.5) & (np.abs(np.floor(pts[:, 1]) - 100) <= 1)
     assert near.any() and (~near).any()
@@ -125,6 +147,13 @@ def test_coarse_bounds_follow_the_coarse_depths_and_fall_back_elsewhere():
     np.testing.assert_allclose(dmin[both], 3.0)
     np.testing.assert_allclose(dmax[both], 5.0)
     assert np.all(dmin[~near] == 1.0) and np.all(np.isinf(dmax[~near]))
+    # and the band search reads exactly these ranges
+    tv = TwoView(K, K, R, t)
+    alphas = line_alphas(lp, K, np.eye(3), 1), line_alphas(lp, K, R.T, 2)
+    got = coarse_search_band(lp, tv, level, 1, (1.0, np.inf), 3, alphas)
+    want = search_band(lp, tv, (dmin, dmax), 3, alphas)
+    np.testing.assert_array_equal(got[0], want[0])
+    np.testing.assert_array_equal(got[1], want[1])
 
 
 def test_two_d_check_drops_a_point_the_majority_disagrees_with():
@@ -412,8 +441,6 @@ def test_fill_from_band_finds_the_shift_inside_a_narrow_band():
 
 def test_propagation_pass_equals_bounds_then_band_then_fill():
     """The fused pass gives what its three steps give one after another."""
-    from sefm_recon.matching.sefm import _widen, grid_depth_bounds
-
     R, t, lp = _lp()
     tv = TwoView(K, K, R, t)
     alphas = line_alphas(lp, K, np.eye(3), 1), line_alphas(lp, K, R.T, 2)
@@ -431,7 +458,7 @@ def test_propagation_pass_equals_bounds_then_band_then_fill():
     everywhere = np.ones((SIZE[1], SIZE[0]), np.uint8)
     got, filled = mk.propagate_pass(I1, lp.offset1, I2, lp.offset2, j, start1, step1, *alphas, wmin, wmax,
                                     float(np.linalg.norm(t)), 1, 6, 3, 0.5, 0, everywhere)
-    depths = grid_depth_bounds(lp, (gmin, gmax), (1.0, 1.0), 1, (0.0, np.inf))
+    depths = _grid_bounds(lp, wmin, wmax, (1.0, 1.0), (0.0, np.inf))
     lo, hi = search_band(lp, tv, depths, 1, alphas)
     lo[~np.isfinite(depths[1])], hi[~np.isfinite(depths[1])] = 0, -1  # no match nearby: no band
     want, wfilled = mk.fill_from_band(I1, lp.offset1, I2, lp.offset2, j, lo, hi, 6, 3, 0.5)

@@ -202,8 +202,8 @@ def depth_band(a1, off1, a2, off2, dmin, dmax, baseline, slack, start, step, sx,
 
     The range of sample ``k`` of line ``l`` (at ``start[l] + k step[l]``,
     COLMAP pixels of image 1) is cell ``floor(x sx), floor(y sy)`` of the
-    ``gmin``/``gmax`` grids (a coarser level's, :func:`lookup_depth_bounds`)
-    where it is finite, else ``dmin``/``dmax``. Read here and used at once, so
+    ``gmin``/``gmax`` grids (a coarser level's distance range near each
+    pixel) where it is finite, else ``dmin``/``dmax``. Read here and used at once, so
     no (N1,) range arrays are made: fresh memory is what a large pair pays
     most for. A 1x1 grid of inf leaves every sample its ``dmin``/``dmax``.
 
@@ -278,37 +278,6 @@ def invert_band(lo, hi, off1, off2):
             first[s2 + k] = min(max(p, 0), n1 - 1)
             last[s2 + k] = min(max(q - 1, -1), n1 - 1)
     return first, last
-
-
-@njit(parallel=True, cache=True)
-def lookup_depth_bounds(start, step, off, sx, sy, gmin, gmax, dmin0, dmax0):
-    """Per-sample distance range from a coarser level's min/max depth grids.
-
-    Sample ``k`` of line ``l`` (at ``start[l] + k * step[l]``, COLMAP pixels)
-    reads cell ``floor(x * sx), floor(y * sy)`` of ``gmin``/``gmax`` (H', W');
-    where the coarse level matched nothing nearby (``gmin`` inf), the global
-    range ``dmin0, dmax0``.
-    Returns dmin, dmax (N,) float64.
-    """
-    L = off.shape[0] - 1
-    H, W = gmin.shape
-    dmin = np.empty(off[L])
-    dmax = np.empty(off[L])
-    for ll in prange(L):
-        l = np.int64(ll)
-        for k in range(off[l + 1] - off[l]):
-            c = int(np.floor((start[l, 0] + k * step[l, 0]) * sx))
-            r = int(np.floor((start[l, 1] + k * step[l, 1]) * sy))
-            c = min(max(c, 0), W - 1)
-            r = min(max(r, 0), H - 1)
-            i = off[l] + k
-            if np.isfinite(gmin[r, c]):
-                dmin[i] = gmin[r, c]
-                dmax[i] = gmax[r, c]
-            else:
-                dmin[i] = dmin0
-                dmax[i] = dmax0
-    return dmin, dmax
 
 
 @njit(cache=True)

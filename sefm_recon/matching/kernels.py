@@ -616,7 +616,10 @@ def depth_runs_filter(depth, line_of, jump, min_run, mask):
 
 @njit(cache=True)
 def _rasterise(uv, value, mask, height, width):
-    """(height, width) float32 grid of ``value`` at ``floor(uv)`` of the masked points (first one wins), NaN elsewhere."""
+    """(height, width) float32 grid of ``value`` at ``floor(uv)`` of the masked points.
+
+    The first point of a cell wins; cells without one hold NaN.
+    """
     grid = np.full((height, width), np.nan, np.float32)
     for k in range(uv.shape[0]):
         if not mask[k]:
@@ -630,7 +633,10 @@ def _rasterise(uv, value, mask, height, width):
 
 @njit(inline="always")
 def _neighbours(grid, r, c, radius, buf):
-    """Copy the values of the other cells of the ``(2 radius + 1)^2`` window at (r, c) into ``buf``; returns their count."""
+    """Copy the values of the other cells of the ``(2 radius + 1)^2`` window at (r, c) into ``buf``.
+
+    Returns their count (cells holding NaN are skipped).
+    """
     m = 0
     for rr in range(max(r - radius, 0), min(r + radius + 1, grid.shape[0])):
         for cc in range(max(c - radius, 0), min(c + radius + 1, grid.shape[1])):
@@ -958,6 +964,17 @@ def _zncc_search(a, i, b, first, n, half, min_zncc, shift=0, max_step=np.inf):
     return best, bj + off
 
 
+@njit(inline="always")
+def _surface_gap(span, length, max_scale):
+    """Whether partners ``span`` line-2 samples apart can bound a gap ``length`` samples long on one surface.
+
+    A gap whose partners span more than ``max_scale`` times fewer (a fold:
+    samples hidden in view 2) or more (hidden in view 1) samples than it has,
+    or none, is a depth edge.
+    """
+    return span > 0 and max_scale * span >= length and span <= max_scale * length
+
+
 @njit(parallel=True, cache=True)
 def fill_gaps(I1, off1, I2, off2, j, max_gap, radius, half, min_zncc, max_scale=np.inf):
     """Fill short gaps of unmatched samples between matched ones on each line.
@@ -966,11 +983,11 @@ def fill_gaps(I1, off1, I2, off2, j, max_gap, radius, half, min_zncc, max_scale=
     neighbours on the line, then searched within ``radius`` samples of the
     prediction by ZNCC over the window of ``2 half + 1`` samples and all
     channels (the neighbour lines: a 2-D patch), refined by a parabola.
-    Accepted when the correlation reaches ``min_zncc``. A gap whose partners
-    span more than ``max_scale`` times fewer (or more) line-2 samples than it
-    has is a depth edge, not a surface: its samples are occluded in one view
-    and the interpolation would put them on the wrong surface; it is left
-    alone. Returns the filled copy of ``j`` and a mask of the filled samples.
+    Accepted when the correlation reaches ``min_zncc``. A gap that is a depth
+    edge, not a surface (:func:`_surface_gap`), is left alone: its samples
+    are occluded in one view and the interpolation would put them on the
+    wrong surface. Returns the filled copy of ``j`` and a mask of the filled
+    samples.
     """
     L = off1.shape[0] - 1
     out = j.copy()
@@ -988,7 +1005,7 @@ def fill_gaps(I1, off1, I2, off2, j, max_gap, radius, half, min_zncc, max_scale=
             if prev >= 0 and i < n and 1 < i - prev <= max_gap + 1:
                 j0 = j[s1 + prev]
                 j1 = j[s1 + i]
-                if j1 > j0 and max_scale * (j1 - j0) >= i - prev and j1 - j0 <= max_scale * (i - prev):
+                if _surface_gap(j1 - j0, i - prev, max_scale):
                     for g in range(prev + 1, i):
                         pred = j0 + (j1 - j0) * (g - prev) / (i - prev)
                         best, pos = _zncc_search(a, g, b, pred - radius, 2 * radius + 1, half, min_zncc)
@@ -1159,7 +1176,7 @@ def fill_from_band(I1, off1, I2, off2, j, lo, hi, max_width, half, min_zncc, max
     samples, the partner is the band's best ZNCC over the window of ``2 half + 1``
     samples and all channels, refined by a parabola, accepted when the
     correlation reaches ``min_zncc``. Samples in a gap between matches that is
-    a depth edge (see :func:`fill_gaps`, ``max_scale``) are left alone: the
+    a depth edge (:func:`_surface_gap`, ``max_scale``) are left alone: the
     band spans both surfaces there. Returns the filled copy of ``j`` and a
     mask of the filled samples.
     """
@@ -1184,10 +1201,8 @@ def fill_from_band(I1, off1, I2, off2, j, lo, hi, max_width, half, min_zncc, max
                 continue
             if hi[s1 + i] < lo[s1 + i] or hi[s1 + i] - lo[s1 + i] + 1 > max_width:
                 continue
-            if prv >= 0 and nxt[i] >= 0:
-                span = j[s1 + nxt[i]] - j[s1 + prv]
-                if max_scale * span < nxt[i] - prv or span > max_scale * (nxt[i] - prv):
-                    continue
+            if prv >= 0 and nxt[i] >= 0 and not _surface_gap(j[s1 + nxt[i]] - j[s1 + prv], nxt[i] - prv, max_scale):
+                continue
             best, pos = _zncc_search(a, i, b, float(lo[s1 + i]), hi[s1 + i] - lo[s1 + i] + 1, half,
                                      min_zncc)
             if best < min_zncc:

@@ -184,65 +184,50 @@ def _widen(grids: tuple[np.ndarray, np.ndarray], radius: int) -> tuple[np.ndarra
     return gmin, gmax
 
 
-def grid_depth_bounds(lp: LinePairs, grids: tuple[np.ndarray, np.ndarray], scale: tuple[float, float], radius: int,
-                      depths: tuple[float, float]):
-    """Distance range (dmin, dmax) per line-1 sample from :func:`depth_grids` around it.
-
-    The grids are of image 1 scaled by ``scale`` (sx, sy): a coarser level's,
-    or image 1 itself. Each sample's range is the smallest and largest
-    distance within ``radius`` pixels of the grid (so an occlusion edge keeps
-    both sides, and an isolated mismatch only widens it); samples with no
-    point nearby keep the global ``depths``.
-    """
-    from ..geometry.kernels import lookup_depth_bounds
-
-    gmin, gmax = _widen(grids, radius)
-    return lookup_depth_bounds(*lp.side(1), float(scale[0]), float(scale[1]), gmin, gmax, float(depths[0]),
-                               float(depths[1]))
-
-
-def coarse_depth_bounds(lp: LinePairs, coarse: CoarseLevel, radius: int, depths: tuple[float, float]):
-    """Distance range (dmin, dmax) per line-1 sample from the coarse level's matches (see :func:`grid_depth_bounds`)."""
-    dm = coarse.matches
-    grids = depth_grids(dm.uv1, np.linalg.norm(dm.xyz, axis=1), coarse.shape)
-    return grid_depth_bounds(lp, grids, coarse.scale, radius, depths)
-
-
 def coarse_search_band(lp: LinePairs, tv: TwoView, coarse: CoarseLevel, radius: int, depths: tuple[float, float],
                        slack: int, alphas: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`search_band` of the :func:`coarse_depth_bounds` ranges, without making them (the same ``lo, hi``)."""
+    """:func:`search_band` with each line-1 sample's distance range from the coarse level's matches.
+
+    A sample's range is the smallest and largest distance the coarse level
+    found within ``radius`` coarse pixels of it (so an occlusion edge keeps
+    both sides, and an isolated mismatch only widens it); samples with no
+    coarse match nearby keep the global ``depths``.
+    """
     dm = coarse.matches
     gmin, gmax = _widen(depth_grids(dm.uv1, np.linalg.norm(dm.xyz, axis=1), coarse.shape), radius)
     return search_band(lp, tv, depths, slack, alphas, (gmin, gmax, coarse.scale))
 
 
-def jump_threshold(cfg: Config, longest: int) -> float:
-    """The key-point threshold on ``da_i`` for images whose longer side is ``longest`` pixels.
+def _per_sample_step(value: float, cfg: Config, longest: int) -> float:
+    """An intensity step per sample that holds at ``rough.jump_reference_size``, for a photo ``longest`` px long.
 
-    A photo of the same object at twice the resolution has half the intensity
-    step per sample, so above ``rough.jump_reference_size`` the threshold
-    shrinks with the size; the key points stay the same features of the scene.
+    A photo of the same object at twice the resolution has half the
+    intensity step per sample (an edge spreads over twice the samples), so
+    above the reference size the value shrinks in proportion.
     """
     r = cfg.rough
     if r.jump_reference_size > 0 and longest > r.jump_reference_size:
-        return r.jump_threshold * r.jump_reference_size / longest
-    return r.jump_threshold
+        return value * r.jump_reference_size / longest
+    return value
+
+
+def jump_threshold(cfg: Config, longest: int) -> float:
+    """The key-point threshold on ``da_i`` for images whose longer side is ``longest`` pixels.
+
+    Scaled with the size (:func:`_per_sample_step`), so the key points stay
+    the same features of the scene.
+    """
+    return _per_sample_step(cfg.rough.jump_threshold, cfg, longest)
 
 
 def shift_max_step(cfg: Config, longest: int) -> float:
     """The intensity step (grey levels between neighbouring samples) a propagation window is not moved across.
 
-    ``dense.propagate_shift_max_step`` (inf when 0), scaled as the key-point
-    threshold (:func:`jump_threshold`): at twice the resolution an edge is
-    spread over twice the samples, with half the step between neighbours.
+    ``dense.propagate_shift_max_step`` (inf when 0), scaled with the size as
+    the key-point threshold (:func:`_per_sample_step`).
     """
     step = cfg.dense.propagate_shift_max_step
-    if step <= 0:
-        return np.inf
-    r = cfg.rough
-    if r.jump_reference_size > 0 and longest > r.jump_reference_size:
-        step *= r.jump_reference_size / longest
-    return float(step)
+    return float(_per_sample_step(step, cfg, longest)) if step > 0 else np.inf
 
 
 def _match_direction(Ia, offa, Ib, offb, lo, hi, cfg: Config, jump: float, bar=None):
