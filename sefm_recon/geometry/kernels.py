@@ -41,24 +41,31 @@ def line_alphas(start, step, off, Minv, basis):
     return alpha
 
 
-@njit(cache=True)
-def bilinear(img, x, y, out, row, col0):
-    """Bilinear sample of img (H, W, C) at COLMAP position (x, y), border replicated."""
-    H, W, C = img.shape
+@njit(cache=True, inline="always")
+def bilinear(img, x, y, c):
+    """Bilinear sample of channel ``c`` of img (H, W, C) at COLMAP position (x, y), border replicated."""
+    H, W = img.shape[0], img.shape[1]
     px = x - 0.5
     py = y - 0.5
-    x0 = int(np.floor(px))
-    y0 = int(np.floor(py))
-    fx = px - x0
-    fy = py - y0
-    xa = min(max(x0, 0), W - 1)
-    xb = min(max(x0 + 1, 0), W - 1)
-    ya = min(max(y0, 0), H - 1)
-    yb = min(max(y0 + 1, 0), H - 1)
-    for c in range(C):
-        top = (1.0 - fx) * img[ya, xa, c] + fx * img[ya, xb, c]
-        bot = (1.0 - fx) * img[yb, xa, c] + fx * img[yb, xb, c]
-        out[row, col0 + c] = (1.0 - fy) * top + fy * bot
+    fx0 = np.floor(px)
+    fy0 = np.floor(py)
+    x0 = int(fx0)
+    y0 = int(fy0)
+    fx = px - fx0
+    fy = py - fy0
+    if x0 >= 0 and y0 >= 0 and x0 < W - 1 and y0 < H - 1:  # inside: no clamping (most samples)
+        xa, xb, ya, yb = x0, x0 + 1, y0, y0 + 1
+    else:
+        xa = min(max(x0, 0), W - 1)
+        xb = min(max(x0 + 1, 0), W - 1)
+        ya = min(max(y0, 0), H - 1)
+        yb = min(max(y0 + 1, 0), H - 1)
+    # In float64, so that integer images do not wrap in the differences.
+    a = np.float64(img[ya, xa, c])
+    b = np.float64(img[yb, xa, c])
+    top = a + fx * (np.float64(img[ya, xb, c]) - a)
+    bot = b + fx * (np.float64(img[yb, xb, c]) - b)
+    return top + fy * (bot - top)
 
 
 @njit(parallel=True, cache=True)
@@ -86,32 +93,46 @@ def sample_line_channels(img, start, step, off, phi, offsets, basis, Minv, M):
         l = np.int64(ll)
         base = off[l]
         n = off[l + 1] - base
-        # Per neighbour: the unit direction normal to b in its half-plane (camera-1 axes).
-        m = np.empty((O, 3))
+        # The ray of sample k is r_a + k r_s; its components along b (rb) and
+        # along the line's half-plane normal (rp) are linear in k too, so each
+        # neighbour's ray rb b + rp m_o, and its pixel, is a projective map
+        # of k: six numbers per neighbour instead of a ray per sample.
+        ra0, ra1, ra2 = pixel_ray(Minv, start[l, 0], start[l, 1])
+        re0, re1, re2 = pixel_ray(Minv, start[l, 0] + step[l, 0], start[l, 1] + step[l, 1])
+        rs0, rs1, rs2 = re0 - ra0, re1 - ra1, re2 - ra2
+        cp = np.cos(phi[l])
+        sp = np.sin(phi[l])
+        m0 = cp * basis[1, 0] + sp * basis[2, 0]
+        m1 = cp * basis[1, 1] + sp * basis[2, 1]
+        m2 = cp * basis[1, 2] + sp * basis[2, 2]
+        rb_a = ra0 * basis[0, 0] + ra1 * basis[0, 1] + ra2 * basis[0, 2]
+        rb_s = rs0 * basis[0, 0] + rs1 * basis[0, 1] + rs2 * basis[0, 2]
+        rp_a = ra0 * m0 + ra1 * m1 + ra2 * m2
+        rp_s = rs0 * m0 + rs1 * m1 + rs2 * m2
+        proj = np.empty((O, 6))  # x, y and z of M d, at k = 0 and per unit k
         for o in range(O):
-            cp = np.cos(phi[l] + offsets[o])
-            sp = np.sin(phi[l] + offsets[o])
+            co = np.cos(phi[l] + offsets[o])
+            so = np.sin(phi[l] + offsets[o])
             for i in range(3):
-                m[o, i] = cp * basis[1, i] + sp * basis[2, i]
+                da = 0.0
+                ds = 0.0
+                for j in range(3):
+                    mo = co * basis[1, j] + so * basis[2, j]
+                    da += M[i, j] * (rb_a * basis[0, j] + rp_a * mo)
+                    ds += M[i, j] * (rb_s * basis[0, j] + rp_s * mo)
+                proj[o, i] = da
+                proj[o, 3 + i] = ds
         for k in range(n):
             x0 = start[l, 0] + k * step[l, 0]
             y0 = start[l, 1] + k * step[l, 1]
-            r0, r1, r2 = pixel_ray(Minv, x0, y0)
-            rb = r0 * basis[0, 0] + r1 * basis[0, 1] + r2 * basis[0, 2]
-            rp = np.sqrt(max(0.0, r0 * r0 + r1 * r1 + r2 * r2 - rb * rb))  # length normal to b
             for o in range(O):
-                if offsets[o] == 0.0:
-                    bilinear(img, x0, y0, out, base + k, o * C)
-                    continue
-                d0 = rb * basis[0, 0] + rp * m[o, 0]
-                d1 = rb * basis[0, 1] + rp * m[o, 1]
-                d2 = rb * basis[0, 2] + rp * m[o, 2]
-                z = M[2, 0] * d0 + M[2, 1] * d1 + M[2, 2] * d2
-                if z > 0:
-                    bilinear(img, (M[0, 0] * d0 + M[0, 1] * d1 + M[0, 2] * d2) / z,
-                              (M[1, 0] * d0 + M[1, 1] * d1 + M[1, 2] * d2) / z, out, base + k, o * C)
-                else:
-                    bilinear(img, x0, y0, out, base + k, o * C)
+                z = proj[o, 2] + k * proj[o, 5]
+                x, y = x0, y0  # a neighbour ray behind the camera takes the line's own pixel
+                if offsets[o] != 0.0 and z > 0:
+                    x = (proj[o, 0] + k * proj[o, 3]) / z
+                    y = (proj[o, 1] + k * proj[o, 4]) / z
+                for c in range(C):
+                    out[base + k, o * C + c] = bilinear(img, x, y, c)
     return out
 
 

@@ -85,7 +85,8 @@ def bilinear_sample(img, uv):
     for kk in prange(n):
         k = np.int64(kk)
         if np.isfinite(uv[k, 0]) and np.isfinite(uv[k, 1]):
-            bilinear(img, uv[k, 0], uv[k, 1], out, k, 0)
+            for ch in range(C):
+                out[k, ch] = bilinear(img, uv[k, 0], uv[k, 1], ch)
         else:
             for ch in range(C):
                 out[k, ch] = np.nan
