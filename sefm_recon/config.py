@@ -85,6 +85,12 @@ class DenseConfig:
     #: on either side): a slanted surface looks longer in one view (0 = off)
     subpixel_slope_radius: int = 6
     subpixel_min_stretch: float = 0.1  #: slopes closer to 1 than this keep the plain window (cheaper)
+    #: the neighbour lines' windows are moved along line 2 by the shear of the matches (how far they move
+    #: from one line to the next, averaged over this many samples on either side): on a surface whose
+    #: depth changes across lines (a floor seen at a grazing angle) they are on the surface (0 = off)
+    subpixel_shear_radius: int = 12
+    subpixel_max_shear: float = 2.0  #: larger shears are across a depth edge: left out of the mean
+    subpixel_min_shear: float = 0.1  #: smaller shears keep the unmoved window (cheaper)
     min_zncc: float = -1.0  #: drop matches whose window ZNCC (all channels) is below this; needs subpixel (-1 = keep all)
     fill_max_gap: int = 64  #: fill gaps up to this many samples between matches on a line (0 = off)
     fill_radius: int = 3  #: search this many samples around the interpolated partner
@@ -220,6 +226,9 @@ _LIMITS: dict[str, tuple[float | None, float | None, bool]] = {
     "dense.min_zncc": (-1, 1, False),
     "dense.single_min_zncc": (-1, 1, False),
     "dense.subpixel_slope_radius": (0, 64, False),
+    "dense.subpixel_shear_radius": (0, 256, False),
+    "dense.subpixel_max_shear": (0, None, True),
+    "dense.subpixel_min_shear": (0, None, False),
     "dense.propagate_window_shift": (0, 64, False),
     "dense.propagate_shift_max_step": (0, None, False),
     "dense.fill_max_scale": (0, None, False),

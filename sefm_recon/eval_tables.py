@@ -37,6 +37,7 @@ ABLATIONS: dict[str, list[str]] = {
         "dense.fill_max_scale=0", "dense.propagate_shift_max_step=0"],
     "- sub-pixel refinement": ["dense.subpixel=false"],
     "- stretched refinement window (slanted surfaces)": ["dense.subpixel_slope_radius=0"],
+    "- sheared refinement window (depth changing across lines)": ["dense.subpixel_shear_radius=0"],
     "- refinement on 3 of the 5 lines (all 5)": ["dense.subpixel_neighbours=2"],
     "- 2-D neighbour check (and its median depth)": ["validity.neighbour_tol_px=0"],
     "- 2-D median depth": ["validity.median_depth=false"],

@@ -350,6 +350,60 @@ def test_stretched_window_finds_the_partner_on_a_slanted_surface():
     assert np.median(err) < 0.05 and err.mean() < 0.2 * np.abs(plain[inner] - truth[inner]).mean()
 
 
+def _sheared_lines(h, n=140, offset=3.7, seed=8):
+    """One line pair of 3 neighbour lines (columns -1, 0, +1): line 2's neighbour o shows line 1's at o h samples on."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(n + 40, dtype=float)
+    noise = rng.normal(size=(n + 44, 3))
+    tex = (noise[:-4] + 2 * noise[1:-3] + 3 * noise[2:-2] + 2 * noise[3:-1] + noise[4:]) / 9  # texture ~3 samples
+    a = tex[20:20 + n].astype(np.float32)
+    # a[i, o] is at j = i + offset + o h on line 2
+    tj = np.arange(n, dtype=float)
+    b = np.stack([np.interp(tj - offset - o * h + 20, t, tex[:, o + 1]) for o in (-1, 0, 1)], 1).astype(np.float32)
+    return a, b, np.arange(n) + offset
+
+
+def test_sheared_window_finds_the_partner_where_depth_changes_across_lines():
+    a, b, truth = _sheared_lines(1.2)
+    n = len(a)
+    off = np.array([0, n], np.int64)
+    t = np.arange(n)
+    j = np.where((t > 12) & (t < n - 12), np.rint(truth), np.nan)
+    inner = np.isfinite(j)
+    shear = np.where(inner, 1.2, 0.0).astype(np.float32)
+    got, z = mk.refine_subpixel(a, off, b, off, j, 7, 1.0, 6, 0.1, 0, -1, shear, -1, 1, 0.1)
+    plain, zp = mk.refine_subpixel(a, off, b, off, j, 7, 1.0, 6, 0.1)
+    err = np.abs(got[inner] - truth[inner])
+    assert np.median(err) < 0.05 and err.mean() < 0.5 * np.abs(plain[inner] - truth[inner]).mean()
+    assert np.median(z[inner]) > 0.95 and np.median(z[inner]) > np.median(zp[inner]) + 0.1  # at the whole-sample j
+    # a shear under min_shear takes the unmoved window: the same answer
+    small = np.where(inner, 0.05, 0.0).astype(np.float32)
+    np.testing.assert_array_equal(mk.refine_subpixel(a, off, b, off, j, 7, 1.0, 6, 0.1, 0, -1, small, -1, 1, 0.1)[0],
+                                  plain)
+
+
+def test_line_shear_reads_how_far_matches_move_from_one_line_to_the_next():
+    # 5 parallel line pairs whose samples start at different ray angles (line l
+    # 2 l samples on in image 1, 3 l in image 2); the ray at line-1 angle index
+    # u meets line 2 at angle index u + 0.7 l - 4: 0.7 samples of shear per line
+    L, n = 5, 60
+    a1 = np.concatenate([0.5 + 0.01 * (np.arange(n) + 2 * l) for l in range(L)])
+    a2 = np.concatenate([0.6 + 0.01 * (np.arange(n + 10) + 3 * l) for l in range(L)])
+    off1 = np.arange(L + 1, dtype=np.int64) * n
+    off2 = np.arange(L + 1, dtype=np.int64) * (n + 10)
+    j = np.concatenate([(np.arange(n) + 2 * l) + 0.7 * l - 4 - 3 * l for l in range(L)])
+    j[(j < 0) | (j > n + 9)] = np.nan
+    nxt = np.array([1, 2, 3, 4, -1], np.int64)
+    h = mk.line_shear(j, a1, off1, a2, off2, nxt, 4, 2.0)
+    ok = np.isfinite(j)
+    np.testing.assert_allclose(h[ok], 0.7, atol=1e-6)
+    assert np.all(h[~ok] == 0)
+    # shears over max_shear are across a depth edge: left out (0 where nothing is left)
+    assert np.all(mk.line_shear(j, a1, off1, a2, off2, nxt, 4, 0.69) == 0)
+    # no neighbour half-plane: no shear
+    assert np.all(mk.line_shear(j, a1, off1, a2, off2, np.full(L, -1, np.int64), 4, 5.0) == 0)
+
+
 def test_shifted_window_matches_a_sample_next_to_a_depth_edge():
     # line 1: foreground texture up to sample 49, background from 50; in line 2
     # the foreground moved by 2 samples and the background by 6 (4 occluded)
@@ -507,3 +561,22 @@ def test_depth_grids_add_points_in_place_as_if_all_at_once():
     assert gmin[r, c] == np.float32(dist[inside].min()) and gmax[r, c] == np.float32(dist[inside].max())
     empty = np.isinf(gmin)
     assert np.all(np.isinf(gmax[empty])) and np.all(gmax[empty] < 0)
+
+
+def test_next_line_skips_missing_half_planes():
+    from sefm_recon.matching.sefm import next_line
+
+    class Lines:  # the two fields next_line reads
+        phi_step = 0.01
+        phi = np.array([0.00, 0.01, 0.02, 0.04, 0.05])  # the half-plane at 0.03 crosses only one image
+
+        def __len__(self):
+            return len(self.phi)
+
+    np.testing.assert_array_equal(next_line(Lines(), 1.0), [1, 2, -1, 4, -1])
+    Lines.phi = Lines.phi[::-1].copy()  # lines in the other order
+    np.testing.assert_array_equal(next_line(Lines(), 1.0), [-1, 0, -1, 2, 3])
+    # all the way round (an epipole inside the image): the last line's next is the first
+    Lines.phi_step = 2 * np.pi / 628
+    Lines.phi = np.arange(628) * Lines.phi_step
+    assert next_line(Lines(), 1.0)[-1] == 0

@@ -893,6 +893,163 @@ def _zncc3_scaled(a, i, b, jpos, half, g):
 
 
 @njit(cache=True)
+def _zncc3_sheared(a, i, b, jpos, half, g, h, o_first, cc):
+    """:func:`_zncc3_scaled` with each neighbour line's window moved along line 2 by its shear.
+
+    The columns of ``a`` and ``b`` are neighbour lines ``o_first, o_first + 1,
+    ...`` (``cc`` channels each). On a surface whose depth changes across
+    lines, neighbour ``o``'s partner is ``o h`` samples along line 2 from the
+    centre line's (:func:`line_shear`); correlating there keeps the 2-D window
+    on the surface.
+    """
+    n1 = a.shape[0]
+    n2 = b.shape[0]
+    C = a.shape[1]
+    reach = abs(h) * max(abs(o_first), abs(o_first + C // cc - 1))
+    lo = max(-half, -i, int(np.ceil((1.0 + reach - jpos) / g)))
+    hi = min(half, n1 - 1 - i, int(np.floor((n2 - 2.0 - reach - jpos) / g)))
+    if hi - lo + 1 < half + 1:
+        return _zncc3(a, i, b, jpos, half)  # near a line end: the plain (cut) window
+    m = (hi - lo + 1) * C
+    t = _SUMS3
+    for c in range(C):
+        sh = jpos + (o_first + c // cc) * h
+        for s in range(lo, hi + 1):
+            p = sh + g * s
+            q = int(p)  # p >= 1 inside the bounds: truncation is the floor
+            f = p - q
+            e = 1.0 - f
+            q2 = min(q + 2, n2 - 1)
+            t = _add3(t, a[i + s, c], e * b[q - 1, c] + f * b[q, c], e * b[q, c] + f * b[q + 1, c],
+                      e * b[q + 1, c] + f * b[q2, c])
+    return _ncc3(t, m)
+
+
+@njit(cache=True)
+def _index_at(a, target, k):
+    """Fractional index of ``target`` in a line's monotone samples ``a`` (n,), by Newton steps from ``k``.
+
+    Linear between samples; NaN where ``target`` is outside the line.
+    """
+    n = a.shape[0]
+    if n < 2:
+        return np.nan
+    for _ in range(8):
+        q = min(max(int(np.floor(k)), 0), n - 2)
+        slope = a[q + 1] - a[q]
+        if slope == 0.0:
+            return np.nan
+        k = q + (target - a[q]) / slope
+        if k < -0.5 or k > n - 0.5:
+            return np.nan
+        if q <= k <= q + 1:
+            return k
+    return np.nan
+
+
+@njit(cache=True)
+def _lerp_match(j, k):
+    """Partner position at fractional index ``k`` between two matched samples of a line (NaN unless both are, 2 or fewer apart)."""
+    q = int(np.floor(k))
+    if q < 0 or q + 1 >= j.shape[0]:
+        return np.nan
+    u = j[q]
+    v = j[q + 1]
+    if np.isnan(u) or np.isnan(v) or abs(v - u) > 2.0:
+        return np.nan
+    return u + (k - q) * (v - u)
+
+
+@njit(parallel=True, cache=True)
+def line_shear(j, a1, off1, a2, off2, next_line, radius, max_shear):
+    """How far a match moves along line 2 per neighbour line, per matched line-1 sample.
+
+    Neighbour line ``o`` of a sample is the ray at the same angle ``alpha`` in
+    the half-plane ``o`` steps over, in both images; ``next_line[l]`` is the
+    line pair of the next half-plane (-1 if none) and ``next_line``'s inverse
+    the previous one. The partner of line ``l``'s sample ``i`` on the next
+    line is that line's match at the same ``alpha_1``, taken to line ``l``'s
+    samples at the same ``alpha_2``; its distance from ``j[i]``, against the
+    previous line's, averaged over matched samples within ``radius`` and
+    clipped to ``max_shear``, is the shear (line-2 samples per line). Zero
+    where unknown: a surface seen face on has none.
+
+    Args:
+        j: (N1,) partner positions (relative to line 2's start), NaN: none.
+        a1, a2: (N1,), (N2,) ray angles from the baseline of the samples.
+        next_line: (L,) int64.
+    Returns:
+        (N1,) float32.
+    """
+    L = off1.shape[0] - 1
+    prev_line = np.full(L, -1, np.int64)
+    for l in range(L):
+        if next_line[l] >= 0:
+            prev_line[next_line[l]] = l
+    raw = np.full(j.shape[0], np.nan)
+    out = np.zeros(j.shape[0], np.float32)
+    for ll in prange(L):
+        l = np.int64(ll)
+        s1 = off1[l]
+        n1 = off1[l + 1] - s1
+        b2 = a2[off2[l]:off2[l + 1]]
+        side_sum = np.zeros(n1)
+        side_cnt = np.zeros(n1, np.int64)
+        for side in range(2):
+            m = next_line[l] if side == 1 else prev_line[l]
+            if m < 0:
+                continue
+            am = a1[off1[m]:off1[m + 1]]
+            jm = j[off1[m]:off1[m + 1]]
+            bm = a2[off2[m]:off2[m + 1]]
+            sign = 1.0 if side == 1 else -1.0
+            k = 0.0
+            last = 0
+            for i in range(n1):
+                jl = j[s1 + i]
+                if np.isnan(jl):
+                    continue
+                # The lines are almost parallel: the last sample's offset is a close first guess.
+                kk = _index_at(am, a1[s1 + i], k + (i - last))
+                if np.isnan(kk):
+                    continue
+                k = kk
+                last = i
+                jk = _lerp_match(jm, k)
+                if np.isnan(jk):
+                    continue
+                q = min(int(jk), bm.shape[0] - 2)
+                k2 = _index_at(b2, bm[q] + (jk - q) * (bm[q + 1] - bm[q]), jl)
+                if not np.isnan(k2):
+                    side_sum[i] += sign * (k2 - jl)
+                    side_cnt[i] += 1
+        for i in range(n1):
+            if side_cnt[i] > 0:
+                raw[s1 + i] = side_sum[i] / side_cnt[i]
+        # The mean over a sliding window, as running sums; shears over
+        # max_shear (and NaN) are across a depth edge and left out.
+        tot = 0.0
+        cnt = 0
+        for k in range(min(n1, radius)):
+            v = raw[s1 + k]
+            if abs(v) <= max_shear:
+                tot += v
+                cnt += 1
+        for i in range(n1):
+            k = i + radius
+            if k < n1 and abs(raw[s1 + k]) <= max_shear:
+                tot += raw[s1 + k]
+                cnt += 1
+            k = i - radius - 1
+            if k >= 0 and abs(raw[s1 + k]) <= max_shear:
+                tot -= raw[s1 + k]
+                cnt -= 1
+            if cnt > 0 and not np.isnan(j[s1 + i]):
+                out[s1 + i] = tot / cnt
+    return out
+
+
+@njit(cache=True)
 def _ncc(sxy, sx, sy, syy, vx, m):
     vy = syy - sy * sy / m
     if vy <= 1e-6 * m:
@@ -1017,7 +1174,8 @@ def fill_gaps(I1, off1, I2, off2, j, max_gap, radius, half, min_zncc, max_scale=
 
 
 @njit(parallel=True, cache=True)
-def refine_subpixel(I1, off1, I2, off2, j, half, max_shift, slope_radius=0, min_stretch=0.1, c0=0, c1=-1):
+def refine_subpixel(I1, off1, I2, off2, j, half, max_shift, slope_radius=0, min_stretch=0.1, c0=0, c1=-1,
+                    shear=None, o_first=0, cc=1, min_shear=0.1):
     """Sub-pixel partner positions: a parabola through the ZNCC at j - 1, j, j + 1.
 
     The DP places partners on its sample grid (after the segment resampling);
@@ -1048,7 +1206,11 @@ def refine_subpixel(I1, off1, I2, off2, j, half, max_shift, slope_radius=0, min_
             if np.isnan(jj):
                 continue
             g = _local_slope(j[s1:e1], i, e1 - s1, slope_radius) if slope_radius > 0 else 1.0
-            if abs(g - 1.0) < min_stretch:
+            h = 0.0 if shear is None else shear[s1 + i]
+            if abs(h) >= min_shear:
+                zl, z0, zr = _zncc3_sheared(a, i, b, jj, half, 1.0 if abs(g - 1.0) < min_stretch else g, h,
+                                            o_first, cc)
+            elif abs(g - 1.0) < min_stretch:
                 zl, z0, zr = _zncc3(a, i, b, jj, half)
             else:
                 zl, z0, zr = _zncc3_scaled(a, i, b, jj, half, g)

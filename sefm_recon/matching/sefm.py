@@ -281,6 +281,23 @@ def _inner_channels(I: np.ndarray, neighbours: int, keep: int) -> tuple[int, int
     return (neighbours - keep) * c, (neighbours + keep + 1) * c
 
 
+def next_line(lp: LinePairs, step: float) -> np.ndarray:
+    """(L,) int64: the line pair whose half-plane is ``step`` line steps past each one's (-1 if none).
+
+    Line pairs are ordered by half-plane angle, but lines that cross only one
+    image are left out, so the neighbour half-plane is not always the next pair.
+    """
+    L = len(lp)
+    out = np.full(L, -1, np.int64)
+    want = step * lp.phi_step
+    for shift in (1, -1):
+        m = (np.arange(L) + shift) % L
+        d = (lp.phi[m] - lp.phi + np.pi) % (2 * np.pi) - np.pi
+        ok = (np.abs(d - want) <= 0.01 * abs(want)) & (m != np.arange(L))
+        out[ok] = m[ok]
+    return out
+
+
 def _line_points(j, cost, max_cost: float, min_angle: float, lp: LinePairs, tv: TwoView, pairs: bool = True):
     """:func:`kernels.line_matches_to_points` with this pair's line geometry and cameras (``min_angle`` radians)."""
     Rt = np.ascontiguousarray(tv.R.T)
@@ -460,9 +477,16 @@ def match_pair(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config, pro
     del lo, hi
     if cfg.dense.subpixel and cfg.dense.subpixel_iterations > 0:
         c0, c1 = _inner_channels(I1, nb, d.subpixel_neighbours)
+        shear = None
+        if d.subpixel_shear_radius > 0 and nb > 0:
+            shear = kernels.line_shear(j, alphas[0], off1, alphas[1], off2, next_line(lp, nstep),
+                                       d.subpixel_shear_radius, d.subpixel_max_shear)
         for _ in range(cfg.dense.subpixel_iterations):
             j, zncc = kernels.refine_subpixel(I1, off1, I2, off2, j, d.subpixel_half_window, 1.0,
-                                              d.subpixel_slope_radius, d.subpixel_min_stretch, c0, c1)
+                                              d.subpixel_slope_radius, d.subpixel_min_stretch, c0, c1,
+                                              shear, -min(nb, d.subpixel_neighbours), I1.shape[1] // (2 * nb + 1),
+                                              d.subpixel_min_shear)
+        del shear
         # A partner whose window does not correlate is most often a wrong one.
         if min_zncc > -1.0:
             j[zncc < min_zncc] = np.nan
