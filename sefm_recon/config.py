@@ -103,6 +103,10 @@ class DenseConfig:
     propagate_radius: int = 1  #: px around a sample whose valid matches bound its band
     propagate_width: int = 6  #: ...when that band is at most this many samples wide
     propagate_min_zncc: float = 0.97  #: ZNCC a propagated match needs (fill_half_window)
+    #: where the neighbours' depth range is wider than propagate_width (they hold two surfaces: a depth
+    #: edge), the distances at its two ends are searched in turn, each widened by this many samples (-1 = off)
+    propagate_split_slack: int = 1
+    propagate_split_margin: float = 0.02  #: ...and the better end's ZNCC must beat the other's by this much
     #: propagation also tries the window moved this many samples to either side (0 = centred only):
     #: next to a depth edge the centred window straddles it
     propagate_window_shift: int = 3
@@ -221,6 +225,8 @@ _LIMITS: dict[str, tuple[float | None, float | None, bool]] = {
     "dense.propagate_radius": (1, 16, False),
     "dense.propagate_width": (1, 256, False),
     "dense.propagate_min_zncc": (-1, 1, False),
+    "dense.propagate_split_slack": (-1, 64, False),
+    "dense.propagate_split_margin": (0, 4, False),
     "pyramid.radius": (0, 16, False),
     "pyramid.fill_width": (0, 256, False),
     "dense.min_zncc": (-1, 1, False),

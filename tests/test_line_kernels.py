@@ -529,6 +529,50 @@ def test_propagation_pass_equals_bounds_then_band_then_fill():
     np.testing.assert_array_equal(part[pfilled], got[pfilled])
 
 
+def test_propagation_next_to_a_depth_edge_searches_each_surface_in_turn():
+    R, t, lp = _lp()
+    tv = TwoView(K, K, R, t)
+    alphas = line_alphas(lp, K, np.eye(3), 1), line_alphas(lp, K, R.T, 2)
+    rng = np.random.default_rng(6)
+    img = cv2.GaussianBlur(rng.uniform(0, 255, (SIZE[1], SIZE[0])).astype(np.float32), (0, 0), 2.0)
+    I1 = sample_line_channels(img, lp, K, np.eye(3), 1, neighbours=1)
+    I2 = sample_line_channels(img, lp, K, R.T, 2, neighbours=1)
+    # the neighbours of a third of the pixels hold two surfaces, three times apart in distance
+    near = np.where(rng.random((SIZE[1], SIZE[0])) < 0.3, rng.uniform(2, 6, (SIZE[1], SIZE[0])), np.inf)
+    gmin = near.astype(np.float32)
+    gmax = np.where(np.isfinite(near), 3 * near, -np.inf).astype(np.float32)
+    j = np.full(len(I1), np.nan)
+    start1, step1, _ = lp.side(1)
+    everywhere = np.ones((SIZE[1], SIZE[0]), np.uint8)
+    args = (I1, lp.offset1, I2, lp.offset2, j, start1, step1, *alphas, gmin, gmax, float(np.linalg.norm(t)), 1, 6, 3,
+            0.5, 0, everywhere, np.inf)
+    both = _grid_bounds(lp, gmin, gmax, (1.0, 1.0), (0.0, np.inf))
+    lo, hi = search_band(lp, tv, both, 1, alphas)
+    wide = np.isfinite(both[1]) & (hi - lo + 1 > 6)
+    assert wide.sum() > 0.5 * np.isfinite(both[1]).sum()
+    plain, off = mk.propagate_pass(*args, -1)
+    assert not off[wide].any()  # too wide: left alone
+    got, on = mk.propagate_pass(*args, 1, 0.0)
+    np.testing.assert_array_equal(on[~wide], off[~wide])  # narrow bands: as before
+    np.testing.assert_array_equal(got[~wide], plain[~wide])
+    on &= wide
+    assert on.sum() > 1000
+    # each partner lies in the band of one end's distance (1 sample wider, half a sample of parabola)
+    for which, g in (("near", gmin), ("far", gmax)):
+        d = _grid_bounds(lp, g, g, (1.0, 1.0), (0.0, np.inf))
+        lo, hi = search_band(lp, tv, (d[0], d[0]), 1, alphas)
+        inside = on & (got >= lo - 0.5) & (got <= hi + 0.5)
+        if which == "near":
+            in_near = inside
+        else:
+            assert np.all((in_near | inside)[on])
+            assert in_near.sum() > 100 and inside.sum() > 100
+    # a margin between the two surfaces' correlations keeps only the clearer samples
+    _, strict = mk.propagate_pass(*args, 1, 0.2)
+    strict &= wide
+    assert 0 < strict.sum() < on.sum() and not (strict & ~on).any()
+
+
 def test_galloping_search_equals_bisection_from_any_guess():
     from sefm_recon.geometry.kernels import _first_above, _first_at_least, _gallop
 

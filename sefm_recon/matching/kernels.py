@@ -1359,7 +1359,7 @@ def fill_from_band(I1, off1, I2, off2, j, lo, hi, max_width, half, min_zncc, max
 
 @njit(parallel=True, cache=True)
 def propagate_pass(I1, off1, I2, off2, j, start1, step1, a1, a2, gmin, gmax, baseline, slack, max_width, half,
-                   min_zncc, shift, active, max_step=np.inf):
+                   min_zncc, shift, active, max_step=np.inf, split_slack=-1, split_margin=0.0):
     """One propagation pass: match unmatched samples inside the depth range of the matches around them.
 
     Sample ``k`` of line ``l`` (at ``start1[l] + k step1[l]``, COLMAP pixels of
@@ -1370,6 +1370,10 @@ def propagate_pass(I1, off1, I2, off2, j, start1, step1, a1, a2, gmin, gmax, bas
     :func:`fill_from_band`. Fused in one pass so only the few unmatched
     samples cost anything; only those on pixels where ``active`` (H, W) is
     set are tried (the pixels whose range changed since the last pass).
+    With ``split_slack`` >= 0, a band too wide is a depth edge (the
+    neighbours hold two surfaces): the bands of its two end distances,
+    ``split_slack`` samples wider, are searched instead, and the better one's
+    ZNCC must beat the other's by ``split_margin``.
     Returns the filled copy of ``j`` and the mask of filled samples.
     """
     L = off1.shape[0] - 1
@@ -1394,9 +1398,30 @@ def propagate_pass(I1, off1, I2, off2, j, start1, step1, a1, a2, gmin, gmax, bas
             if not active[r, c] or not np.isfinite(gmax[r, c]):
                 continue
             lo, hi, ga, gb = sample_band(a1[i], a2, s2, e2, gmin[r, c], gmax[r, c], baseline, slack, ga, gb)
-            if hi < lo or hi - lo + 1 > max_width:
+            if hi < lo:
                 continue
-            best, pos = _zncc_search(a, k, b, float(lo), hi - lo + 1, half, min_zncc, shift, max_step)
+            if hi - lo + 1 <= max_width:
+                best, pos = _zncc_search(a, k, b, float(lo), hi - lo + 1, half, min_zncc, shift, max_step)
+            elif split_slack >= 0:
+                # Next to a depth edge the neighbours hold two surfaces: try each one's distance.
+                best = -2.0
+                other = -2.0
+                pos = 0.0
+                for dist in (gmin[r, c], gmax[r, c]):
+                    lo2, hi2, _, _ = sample_band(a1[i], a2, s2, e2, dist, dist, baseline, split_slack, ga, gb)
+                    if hi2 < lo2:
+                        continue
+                    z, p = _zncc_search(a, k, b, float(lo2), hi2 - lo2 + 1, half, min_zncc, shift, max_step)
+                    if z > best:
+                        other = best
+                        best = z
+                        pos = p
+                    else:
+                        other = max(other, z)
+                if best - other < split_margin:
+                    continue
+            else:
+                continue
             if best >= min_zncc:
                 out[i] = pos
                 filled[i] = True

@@ -355,7 +355,9 @@ def propagate(lp: LinePairs, tv: TwoView, I1, I2, j, idx, uv1, dist, keep, alpha
     fill; where the centred window fails, windows moved
     ``dense.propagate_window_shift`` samples to either side are tried, for
     samples next to a depth edge, but not across an intensity step over
-    ``max_step``: :func:`shift_max_step`). Scanline DP leaves gaps where one line alone was ambiguous; the
+    ``max_step``: :func:`shift_max_step`). Where the range is wider (the
+    neighbours lie on two surfaces), its two ends are searched in turn
+    (``dense.propagate_split_*``). Scanline DP leaves gaps where one line alone was ambiguous; the
     lines beside it often matched there. Each of the ``dense.propagate_passes``
     passes grows from the valid matches and the previous passes' new ones;
     the caller validates the result once. Returns the new ``j`` (invalid
@@ -377,7 +379,8 @@ def propagate(lp: LinePairs, tv: TwoView, I1, I2, j, idx, uv1, dist, keep, alpha
         # One sample of slack: the neighbours' depths are fine-level ones.
         jv, filled = kernels.propagate_pass(I1, lp.offset1, I2, lp.offset2, jv, start1, step1, *alphas, gmin, gmax,
                                             baseline, 1, d.propagate_width, d.fill_half_window,
-                                            d.propagate_min_zncc, d.propagate_window_shift, active, max_step)
+                                            d.propagate_min_zncc, d.propagate_window_shift, active, max_step,
+                                            d.propagate_split_slack, d.propagate_split_margin)
         if not filled.any():
             break
         new |= filled
