@@ -493,19 +493,28 @@ def test_fill_from_band_finds_the_shift_inside_a_narrow_band():
     np.testing.assert_array_equal(np.rint(out[inner]), inner + 4.0)
 
 
-def test_propagation_pass_equals_bounds_then_band_then_fill():
-    """The fused pass gives what its three steps give one after another."""
+def _propagation_scene(seed, ratio):
+    """Line samples of a random blurred image in both views, and distance grids known on a third of the pixels.
+
+    Returns ``R, t, lp, tv, alphas, I1, I2, gmin, gmax, rng``; ``gmax = ratio * gmin``.
+    """
     R, t, lp = _lp()
     tv = TwoView(K, K, R, t)
     alphas = line_alphas(lp, K, np.eye(3), 1), line_alphas(lp, K, R.T, 2)
-    rng = np.random.default_rng(5)
+    rng = np.random.default_rng(seed)
     img = cv2.GaussianBlur(rng.uniform(0, 255, (SIZE[1], SIZE[0])).astype(np.float32), (0, 0), 2.0)
     I1 = sample_line_channels(img, lp, K, np.eye(3), 1, neighbours=1)
     I2 = sample_line_channels(img, lp, K, R.T, 2, neighbours=1)
+    near = np.where(rng.random((SIZE[1], SIZE[0])) < 0.3, rng.uniform(2, 6, (SIZE[1], SIZE[0])), np.inf)
+    gmin = near.astype(np.float32)
+    gmax = np.where(np.isfinite(near), ratio * near, -np.inf).astype(np.float32)
+    return R, t, lp, tv, alphas, I1, I2, gmin, gmax, rng
+
+
+def test_propagation_pass_equals_bounds_then_band_then_fill():
+    """The fused pass gives what its three steps give one after another."""
     # depths known on a third of the pixels, every sample unmatched but a few
-    gmin = np.where(rng.random((SIZE[1], SIZE[0])) < 0.3, rng.uniform(2, 6, (SIZE[1], SIZE[0])), np.inf)
-    gmin = gmin.astype(np.float32)
-    gmax = np.where(np.isfinite(gmin), gmin * 1.02, -np.inf).astype(np.float32)
+    R, t, lp, tv, alphas, I1, I2, gmin, gmax, rng = _propagation_scene(5, 1.02)
     j = np.where(rng.random(len(I1)) < 0.1, 5.0, np.nan)
     wmin, wmax = _widen((gmin, gmax), 1)
     start1, step1, _ = lp.side(1)
@@ -530,17 +539,8 @@ def test_propagation_pass_equals_bounds_then_band_then_fill():
 
 
 def test_propagation_next_to_a_depth_edge_searches_each_surface_in_turn():
-    R, t, lp = _lp()
-    tv = TwoView(K, K, R, t)
-    alphas = line_alphas(lp, K, np.eye(3), 1), line_alphas(lp, K, R.T, 2)
-    rng = np.random.default_rng(6)
-    img = cv2.GaussianBlur(rng.uniform(0, 255, (SIZE[1], SIZE[0])).astype(np.float32), (0, 0), 2.0)
-    I1 = sample_line_channels(img, lp, K, np.eye(3), 1, neighbours=1)
-    I2 = sample_line_channels(img, lp, K, R.T, 2, neighbours=1)
     # the neighbours of a third of the pixels hold two surfaces, three times apart in distance
-    near = np.where(rng.random((SIZE[1], SIZE[0])) < 0.3, rng.uniform(2, 6, (SIZE[1], SIZE[0])), np.inf)
-    gmin = near.astype(np.float32)
-    gmax = np.where(np.isfinite(near), 3 * near, -np.inf).astype(np.float32)
+    R, t, lp, tv, alphas, I1, I2, gmin, gmax, _ = _propagation_scene(6, 3.0)
     j = np.full(len(I1), np.nan)
     start1, step1, _ = lp.side(1)
     everywhere = np.ones((SIZE[1], SIZE[0]), np.uint8)
