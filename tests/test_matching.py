@@ -110,7 +110,7 @@ def test_depth_continuity_drops_spikes_but_keeps_steps():
                                                    mask=np.array([True, False, True, False])), [False] * 4)
 
 
-def test_propagation_step_limit_shrinks_with_the_photo_size():
+def test_propagation_step_limit_and_window_shift_scale_with_the_photo_size():
     import dataclasses
 
     from sefm_recon.config import load_config
@@ -124,6 +124,13 @@ def test_propagation_step_limit_shrinks_with_the_photo_size():
     assert sefm.shift_max_step(cfg, 2000) == step / 2
     off = dataclasses.replace(cfg, dense=dataclasses.replace(cfg.dense, propagate_shift_max_step=0.0))
     assert sefm.shift_max_step(off, 2000) == np.inf
+    # the window is moved farther on larger photos, with the square root of the size
+    shift = cfg.dense.propagate_window_shift
+    assert shift == 3
+    assert sefm.window_shift(cfg, 800) == sefm.window_shift(cfg, 1000) == 3
+    assert sefm.window_shift(cfg, 2000) == 4 and sefm.window_shift(cfg, 4000) == 6
+    fixed = dataclasses.replace(cfg, rough=dataclasses.replace(cfg.rough, jump_reference_size=0))
+    assert sefm.window_shift(fixed, 4000) == 3
 
 def test_jump_threshold_shrinks_with_the_photo_size_and_coarse_levels_keep_it(monkeypatch):
     import dataclasses
