@@ -379,10 +379,10 @@ def propagate(lp: LinePairs, tv: TwoView, I1, I2, j, idx, uv1, dist, keep, alpha
     samples next to a depth edge, but not across an intensity step over
     ``max_step``: :func:`shift_max_step`). Where the range is wider (the
     neighbours lie on two surfaces), its two ends are searched in turn
-    (``dense.propagate_split_*``). Scanline DP leaves gaps where one line alone was ambiguous; the
-    lines beside it often matched there. Each of the ``dense.propagate_passes``
-    passes grows from the valid matches and the previous passes' new ones;
-    the caller validates the result once. Returns the new ``j`` (invalid
+    (``dense.propagate_split_*``). Scanline DP leaves gaps where one line
+    alone was ambiguous; the lines beside it often matched there. Each of
+    the ``dense.propagate_passes`` passes grows from the valid matches and
+    the previous passes' new ones; the caller validates the result once. Returns the new ``j`` (invalid
     matches dropped, new ones added) and the mask of new ones.
     """
     d = cfg.dense
