@@ -879,11 +879,11 @@ def _zncc3_sheared(a, i, b, jpos, half, g, h, o_first, cc):
     """:func:`_zncc3` with line 2's window stretched by ``g`` and each neighbour line's moved by its shear.
 
     On a slanted surface the partner of ``i + s`` is near ``jpos + g s``, not
-    ``jpos + s`` (:func:`_zncc3_scaled`). The columns of ``a`` and ``b`` are neighbour lines ``o_first, o_first + 1,
-    ...`` (``cc`` channels each). On a surface whose depth changes across
-    lines, neighbour ``o``'s partner is ``o h`` samples along line 2 from the
-    centre line's (:func:`line_shear`); correlating there keeps the 2-D window
-    on the surface.
+    ``jpos + s`` (:func:`_zncc3_scaled`). The columns of ``a`` and ``b`` are
+    neighbour lines ``o_first, o_first + 1, ...`` (``cc`` channels each). On
+    a surface whose depth changes across lines, neighbour ``o``'s partner is
+    ``o h`` samples along line 2 from the centre line's (:func:`line_shear`);
+    correlating there keeps the 2-D window on the surface.
     """
     n1 = a.shape[0]
     n2 = b.shape[0]
@@ -953,9 +953,10 @@ def line_shear(j, a1, off1, a2, off2, next_line, radius, max_shear):
     the previous one. The partner of line ``l``'s sample ``i`` on the next
     line is that line's match at the same ``alpha_1``, taken to line ``l``'s
     samples at the same ``alpha_2``; its distance from ``j[i]``, against the
-    previous line's, averaged over matched samples within ``radius`` and
-    clipped to ``max_shear``, is the shear (line-2 samples per line). Zero
-    where unknown: a surface seen face on has none.
+    previous line's, averaged over the matched samples within ``radius``
+    (leaving out shears over ``max_shear``: across a depth edge), is the
+    shear (line-2 samples per line). Zero where unknown: a surface seen face
+    on has none.
 
     Args:
         j: (N1,) partner positions (relative to line 2's start), NaN: none.
@@ -969,14 +970,13 @@ def line_shear(j, a1, off1, a2, off2, next_line, radius, max_shear):
     for l in range(L):
         if next_line[l] >= 0:
             prev_line[next_line[l]] = l
-    raw = np.full(j.shape[0], np.nan)
     out = np.zeros(j.shape[0], np.float32)
     for ll in prange(L):
         l = np.int64(ll)
         s1 = off1[l]
         n1 = off1[l + 1] - s1
         b2 = a2[off2[l]:off2[l + 1]]
-        side_sum = np.zeros(n1)
+        raw = np.zeros(n1)  # the sum over both sides, then their mean (NaN where neither gave one)
         side_cnt = np.zeros(n1, np.int64)
         for side in range(2):
             m = next_line[l] if side == 1 else prev_line[l]
@@ -1004,28 +1004,26 @@ def line_shear(j, a1, off1, a2, off2, next_line, radius, max_shear):
                 q = min(int(jk), bm.shape[0] - 2)
                 k2 = _index_at(b2, bm[q] + (jk - q) * (bm[q + 1] - bm[q]), jl)
                 if not np.isnan(k2):
-                    side_sum[i] += sign * (k2 - jl)
+                    raw[i] += sign * (k2 - jl)
                     side_cnt[i] += 1
         for i in range(n1):
-            if side_cnt[i] > 0:
-                raw[s1 + i] = side_sum[i] / side_cnt[i]
+            raw[i] = raw[i] / side_cnt[i] if side_cnt[i] > 0 else np.nan
         # The mean over a sliding window, as running sums; shears over
         # max_shear (and NaN) are across a depth edge and left out.
         tot = 0.0
         cnt = 0
         for k in range(min(n1, radius)):
-            v = raw[s1 + k]
-            if abs(v) <= max_shear:
-                tot += v
+            if abs(raw[k]) <= max_shear:
+                tot += raw[k]
                 cnt += 1
         for i in range(n1):
             k = i + radius
-            if k < n1 and abs(raw[s1 + k]) <= max_shear:
-                tot += raw[s1 + k]
+            if k < n1 and abs(raw[k]) <= max_shear:
+                tot += raw[k]
                 cnt += 1
             k = i - radius - 1
-            if k >= 0 and abs(raw[s1 + k]) <= max_shear:
-                tot -= raw[s1 + k]
+            if k >= 0 and abs(raw[k]) <= max_shear:
+                tot -= raw[k]
                 cnt -= 1
             if cnt > 0 and not np.isnan(j[s1 + i]):
                 out[s1 + i] = tot / cnt
@@ -1171,6 +1169,10 @@ def refine_subpixel(I1, off1, I2, off2, j, half, max_shift, slope_radius=0, min_
     biased, which costs precision at 1 px.
     Only channels ``c0`` up to ``c1`` (exclusive; -1: all) take part: a
     view, so the caller need not copy the samples of the lines it uses.
+    With ``shear`` (N1,) (:func:`line_shear`), each neighbour line's window
+    is moved along line 2 by its shear where that is at least
+    ``min_shear``; the channels taken part are neighbour lines ``o_first,
+    o_first + 1, ...``, ``cc`` channels each.
     Returns the refined copy of ``j`` and the ZNCC at the DP's position
     (NaN where unmatched, -2 where the window is flat or, cut at the line
     ends, shorter than ``half + 1`` samples).
@@ -1189,14 +1191,15 @@ def refine_subpixel(I1, off1, I2, off2, j, half, max_shift, slope_radius=0, min_
             if np.isnan(jj):
                 continue
             g = _local_slope(j[s1:e1], i, e1 - s1, slope_radius) if slope_radius > 0 else 1.0
+            if abs(g - 1.0) < min_stretch:
+                g = 1.0
             h = 0.0 if shear is None else shear[s1 + i]
-            if abs(h) >= min_shear:
-                zl, z0, zr = _zncc3_sheared(a, i, b, jj, half, 1.0 if abs(g - 1.0) < min_stretch else g, h,
-                                            o_first, cc)
-            elif abs(g - 1.0) < min_stretch:
+            if abs(h) < min_shear:
+                h = 0.0
+            if g == 1.0 and h == 0.0:
                 zl, z0, zr = _zncc3(a, i, b, jj, half)
             else:
-                zl, z0, zr = _zncc3_scaled(a, i, b, jj, half, g)
+                zl, z0, zr = _zncc3_sheared(a, i, b, jj, half, g, h, o_first, cc)
             zncc[s1 + i] = z0
             if z0 <= -2.0 or zl <= -2.0 or zr <= -2.0:
                 continue

@@ -382,8 +382,9 @@ def propagate(lp: LinePairs, tv: TwoView, I1, I2, j, idx, uv1, dist, keep, alpha
     (``dense.propagate_split_*``). Scanline DP leaves gaps where one line
     alone was ambiguous; the lines beside it often matched there. Each of
     the ``dense.propagate_passes`` passes grows from the valid matches and
-    the previous passes' new ones; the caller validates the result once. Returns the new ``j`` (invalid
-    matches dropped, new ones added) and the mask of new ones.
+    the previous passes' new ones; the caller validates the result once.
+    Returns the new ``j`` (invalid matches dropped, new ones added) and the
+    mask of new ones.
     """
     d = cfg.dense
     shift = d.propagate_window_shift if shift is None else shift
