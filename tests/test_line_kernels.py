@@ -536,6 +536,30 @@ def test_propagation_pass_equals_bounds_then_band_then_fill():
     on = active[np.clip(px[:, 1], 0, SIZE[1] - 1), np.clip(px[:, 0], 0, SIZE[0] - 1)] == 1
     np.testing.assert_array_equal(pfilled, filled & on)
     np.testing.assert_array_equal(part[pfilled], got[pfilled])
+    # the pass widens the raw grids itself, for the samples it tries: the same partners
+    raw, rfilled = mk.propagate_pass(I1, lp.offset1, I2, lp.offset2, j, start1, step1, *alphas, gmin, gmax,
+                                     float(np.linalg.norm(t)), 1, 6, 3, 0.5, 0, everywhere, np.inf, -1, 0.0, 1)
+    np.testing.assert_array_equal(rfilled, filled)
+    np.testing.assert_array_equal(raw, got)
+
+
+def test_sample_points_are_those_of_the_line_matches():
+    R, t, lp = _lp()
+    rng = np.random.default_rng(3)
+    n = int(lp.offset1[-1])
+    j = np.where(rng.random(n) < 0.3, rng.uniform(0, 50, n), np.nan)
+    start1, step1, off1 = lp.side(1)
+    start2, step2, _ = lp.side(2)
+    Kinv = np.linalg.inv(K)
+    Rt = np.ascontiguousarray(R.T)
+    c2 = -Rt @ np.asarray(t, np.float64)
+    idx, line, uv1, _, _, dist, valid = mk.line_matches_to_points(j, np.zeros(n), 1.0, start1, step1, off1, start2,
+                                                                 step2, Kinv, Kinv, Rt, c2, 0.0, False)
+    pick = np.sort(rng.choice(len(idx), 500, replace=False))
+    got = mk.sample_points(idx[pick], line[pick], j, start1, step1, off1, start2, step2, Kinv, Kinv, Rt, c2, 0.0)
+    np.testing.assert_array_equal(got[0], uv1[pick])
+    np.testing.assert_array_equal(got[1], dist[pick])
+    np.testing.assert_array_equal(got[2], valid[pick])
 
 
 def test_propagation_next_to_a_depth_edge_searches_each_surface_in_turn():

@@ -2,6 +2,7 @@
 
 import cv2
 import numpy as np
+import pytest
 
 from sefm_recon.matching import dense, rough
 from sefm_recon.matching.validity import depth_continuity
@@ -108,6 +109,8 @@ def test_depth_continuity_drops_spikes_but_keeps_steps():
     # a run made short by the mask is dropped
     np.testing.assert_array_equal(depth_continuity(np.ones(4), np.zeros(4, np.int64), 0.05, 3,
                                                    mask=np.array([True, False, True, False])), [False] * 4)
+    with pytest.raises(ValueError, match="sorted by line"):
+        depth_continuity(np.ones(3), np.array([1, 0, 0]), 0.05, 3)
 
 
 def test_propagation_step_limit_and_window_shift_scale_with_the_photo_size():

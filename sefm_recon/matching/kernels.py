@@ -585,6 +585,8 @@ def depth_runs_filter(depth, line_of, jump, min_run, mask):
     ns = 0
     for i in range(n):
         if i == 0 or line_of[i] != line_of[i - 1]:
+            if i > 0 and line_of[i] < line_of[i - 1]:
+                raise ValueError("points must be sorted by line")
             starts[ns] = i
             ns += 1
     starts[ns] = n
@@ -1362,13 +1364,14 @@ def fill_from_band(I1, off1, I2, off2, j, lo, hi, max_width, half, min_zncc, max
 
 @njit(parallel=True, cache=True)
 def propagate_pass(I1, off1, I2, off2, j, start1, step1, a1, a2, gmin, gmax, baseline, slack, max_width, half,
-                   min_zncc, shift, active, max_step=np.inf, split_slack=-1, split_margin=0.0):
+                   min_zncc, shift, active, max_step=np.inf, split_slack=-1, split_margin=0.0, radius=0):
     """One propagation pass: match unmatched samples inside the depth range of the matches around them.
 
     Sample ``k`` of line ``l`` (at ``start1[l] + k step1[l]``, COLMAP pixels of
     image 1) without a partner (``j`` NaN) reads the distance range
-    ``gmin``/``gmax`` (H, W) of its pixel (grids already widened to the
-    neighbours; inf where none); its line-2 band (:func:`sample_band`, ``slack``
+    ``gmin``/``gmax`` (H, W) of the pixels within ``radius`` of its pixel
+    (inf where none; reading it here costs less than widening the grids
+    for the few samples tried); its line-2 band (:func:`sample_band`, ``slack``
     samples wider) at most ``max_width`` samples wide is searched by ZNCC as in
     :func:`fill_from_band`. Fused in one pass so only the few unmatched
     samples cost anything; only those on pixels where ``active`` (H, W) is
@@ -1398,9 +1401,17 @@ def propagate_pass(I1, off1, I2, off2, j, start1, step1, a1, a2, gmin, gmax, bas
                 continue
             c = min(max(int(np.floor(start1[l, 0] + k * step1[l, 0])), 0), W - 1)
             r = min(max(int(np.floor(start1[l, 1] + k * step1[l, 1])), 0), H - 1)
-            if not active[r, c] or not np.isfinite(gmax[r, c]):
+            if not active[r, c]:
                 continue
-            lo, hi, ga, gb = sample_band(a1[i], a2, s2, e2, gmin[r, c], gmax[r, c], baseline, slack, ga, gb)
+            dmin = np.inf
+            dmax = -np.inf
+            for rr in range(max(r - radius, 0), min(r + radius + 1, H)):
+                for cc in range(max(c - radius, 0), min(c + radius + 1, W)):
+                    dmin = min(dmin, gmin[rr, cc])
+                    dmax = max(dmax, gmax[rr, cc])
+            if not np.isfinite(dmax):
+                continue
+            lo, hi, ga, gb = sample_band(a1[i], a2, s2, e2, dmin, dmax, baseline, slack, ga, gb)
             if hi < lo:
                 continue
             if hi - lo + 1 <= max_width:
@@ -1410,7 +1421,7 @@ def propagate_pass(I1, off1, I2, off2, j, start1, step1, a1, a2, gmin, gmax, bas
                 best = -2.0
                 other = -2.0
                 pos = 0.0
-                for dist in (gmin[r, c], gmax[r, c]):
+                for dist in (dmin, dmax):
                     lo2, hi2, _, _ = sample_band(a1[i], a2, s2, e2, dist, dist, baseline, split_slack, ga, gb)
                     if hi2 < lo2:
                         continue
@@ -1474,12 +1485,8 @@ def line_matches_to_points(j, cost, max_cost, start1, step1, off1, start2, step2
         for i in range(off1[l], off1[l + 1]):
             if not (np.isfinite(j[i]) and cost[i] <= max_cost):
                 continue
-            k = i - off1[l]
-            x1 = start1[l, 0] + k * step1[l, 0]
-            y1 = start1[l, 1] + k * step1[l, 1]
-            x2 = start2[l, 0] + j[i] * step2[l, 0]
-            y2 = start2[l, 1] + j[i] * step2[l, 1]
-            X0, X1, X2, s1, s2, dot = _midpoint(Kinv1, Kinv2, Rt, c2, x1, y1, x2, y2)
+            x1, y1, x2, y2, X0, X1, X2, d, ok = _sample_pair(l, i - off1[l], j[i], start1, step1, start2, step2,
+                                                             Kinv1, Kinv2, Rt, c2, cos_max)
             idx[p] = i
             line[p] = l
             uv1[p, 0] = x1
@@ -1490,7 +1497,43 @@ def line_matches_to_points(j, cost, max_cost, start1, step1, off1, start2, step2
                 X[p, 0] = X0
                 X[p, 1] = X1
                 X[p, 2] = X2
-            dist[p] = np.sqrt(X0 * X0 + X1 * X1 + X2 * X2)
-            valid[p] = 1.0 - dot * dot > 1e-12 and s1 > 0 and s2 > 0 and np.isfinite(dist[p]) and dot <= cos_max
+            dist[p] = d
+            valid[p] = ok
             p += 1
     return idx, line, uv1, uv2, X, dist, valid
+
+
+@njit(inline="always")
+def _sample_pair(l, k, jj, start1, step1, start2, step2, Kinv1, Kinv2, Rt, c2, cos_max):
+    """Sample ``k`` of line ``l`` and its partner ``jj``: both pixels, the midpoint point, its distance and validity."""
+    x1 = start1[l, 0] + k * step1[l, 0]
+    y1 = start1[l, 1] + k * step1[l, 1]
+    x2 = start2[l, 0] + jj * step2[l, 0]
+    y2 = start2[l, 1] + jj * step2[l, 1]
+    X0, X1, X2, s1, s2, dot = _midpoint(Kinv1, Kinv2, Rt, c2, x1, y1, x2, y2)
+    d = np.sqrt(X0 * X0 + X1 * X1 + X2 * X2)
+    ok = 1.0 - dot * dot > 1e-12 and s1 > 0 and s2 > 0 and np.isfinite(d) and dot <= cos_max
+    return x1, y1, x2, y2, X0, X1, X2, d, ok
+
+
+@njit(parallel=True, cache=True)
+def sample_points(samples, line, j, start1, step1, off1, start2, step2, Kinv1, Kinv2, Rt, c2, min_angle):
+    """:func:`line_matches_to_points` for the listed samples only: ``uv1`` (M, 2), ``dist`` (M,), ``valid`` (M,).
+
+    ``samples`` (M,) flat sample indices with finite ``j``, ``line`` (M,) their lines.
+    """
+    M = samples.shape[0]
+    uv1 = np.empty((M, 2))
+    dist = np.empty(M)
+    valid = np.empty(M, np.bool_)
+    cos_max = np.cos(min_angle)
+    for p in prange(M):
+        i = samples[p]
+        l = line[p]
+        x1, y1, _, _, _, _, _, d, ok = _sample_pair(l, i - off1[l], j[i], start1, step1, start2, step2, Kinv1, Kinv2,
+                                                    Rt, c2, cos_max)
+        uv1[p, 0] = x1
+        uv1[p, 1] = y1
+        dist[p] = d
+        valid[p] = ok
+    return uv1, dist, valid

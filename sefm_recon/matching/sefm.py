@@ -329,6 +329,16 @@ def _line_points(j, cost, max_cost: float, min_angle: float, lp: LinePairs, tv: 
                                           pairs)
 
 
+def _sample_points(samples: np.ndarray, j, lp: LinePairs, tv: TwoView):
+    """:func:`_line_points` (no angle limit) of the listed samples: ``uv1, dist, valid``."""
+    Rt = np.ascontiguousarray(tv.R.T)
+    start1, step1, off1 = lp.side(1)
+    start2, step2, _ = lp.side(2)
+    line = np.searchsorted(off1, samples, side="right") - 1
+    return kernels.sample_points(samples, line, j, start1, step1, off1, start2, step2, np.linalg.inv(tv.K1),
+                                 np.linalg.inv(tv.K2), Rt, -Rt @ np.asarray(tv.t, np.float64), 0.0)
+
+
 def _validated_points(j, cost, lp: LinePairs, tv: TwoView, shape: tuple[int, int], cfg: Config,
                       median: bool = False, pairs: bool = True):
     """Matched samples -> pixel pairs, points and the validity mask (S_p, then the 2-D check).
@@ -393,24 +403,22 @@ def propagate(lp: LinePairs, tv: TwoView, I1, I2, j, idx, uv1, dist, keep, alpha
     valid[idx[keep]] = True
     jv = np.where(valid, j, np.nan)  # one pass; a NaN fill and a scatter cost 5x more here
     new = np.zeros(len(j), bool)
-    nothing = np.zeros(len(j), np.float32)
     start1, step1, _ = lp.side(1)
     baseline = float(np.linalg.norm(tv.t))
     active = np.ones(shape, np.uint8)
     kernel = np.ones((2 * d.propagate_radius + 1,) * 2, np.uint8)
     for _ in range(d.propagate_passes):
-        gmin, gmax = _widen(grids, d.propagate_radius)
         # One sample of slack: the neighbours' depths are fine-level ones.
-        jv, filled = kernels.propagate_pass(I1, lp.offset1, I2, lp.offset2, jv, start1, step1, *alphas, gmin, gmax,
+        jv, filled = kernels.propagate_pass(I1, lp.offset1, I2, lp.offset2, jv, start1, step1, *alphas, *grids,
                                             baseline, 1, d.propagate_width, d.fill_half_window,
                                             d.propagate_min_zncc, shift, active, max_step,
-                                            d.propagate_split_slack, d.propagate_split_margin)
+                                            d.propagate_split_slack, d.propagate_split_margin, d.propagate_radius)
         if not filled.any():
             break
         new |= filled
         # The new matches' points seed the next pass.
-        jf = np.where(filled, jv, np.nan)
-        _, _, fuv1, _, _, fdist, fvalid = _line_points(jf, nothing, 1.0, 0.0, lp, tv, pairs=False)
+        fi = np.flatnonzero(filled)
+        fuv1, fdist, fvalid = _sample_points(fi, jv, lp, tv)
         depth_grids(fuv1, fdist, shape, fvalid, grids)
         # Only pixels whose widened range just changed can match in the next
         # pass: a sample that failed with the same range fails again.

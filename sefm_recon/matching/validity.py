@@ -28,8 +28,6 @@ def depth_continuity(depth: np.ndarray, line: np.ndarray, jump: float = 0.05, mi
     line = np.ascontiguousarray(line, np.int64)
     if len(depth) == 0:
         return np.zeros(0, bool)
-    if np.any(np.diff(line) < 0):
-        raise ValueError("points must be sorted by line")
     mask = np.ones(len(depth), bool) if mask is None else np.ascontiguousarray(mask, bool)
     return kernels.depth_runs_filter(depth, line, float(jump), int(min_run), mask)
 
