@@ -100,6 +100,7 @@ class DenseConfig:
     #: depth edge and is not filled (0 = fill every gap)
     fill_max_scale: float = 3.0
     propagate_passes: int = 8  #: grow valid matches into unmatched neighbours this many times (0 = off)
+    propagate_rounds: int = 2  #: propagation and validation, this many times (the validation drops matches that block growth)
     propagate_radius: int = 1  #: px around a sample whose valid matches bound its band
     propagate_width: int = 6  #: ...when that band is at most this many samples wide
     propagate_min_zncc: float = 0.97  #: ZNCC a propagated match needs (fill_half_window)
@@ -222,6 +223,7 @@ _LIMITS: dict[str, tuple[float | None, float | None, bool]] = {
     "pyramid.min_size": (0, None, False),
     "pyramid.factor": (2, 16, False),
     "dense.propagate_passes": (0, 16, False),
+    "dense.propagate_rounds": (1, 8, False),
     "dense.propagate_radius": (1, 16, False),
     "dense.propagate_width": (1, 256, False),
     "dense.propagate_min_zncc": (-1, 1, False),

@@ -376,7 +376,7 @@ def _at_distance(uv1: np.ndarray, dist: np.ndarray, tv: TwoView):
 
 
 def propagate(lp: LinePairs, tv: TwoView, I1, I2, j, idx, uv1, dist, keep, alphas, shape: tuple[int, int],
-              cfg: Config, max_step: float = np.inf, shift: int | None = None):
+              cfg: Config, max_step: float = np.inf, shift: int | None = None, state=None):
     """Grow the valid matches into their unmatched neighbours (2-D, across line pairs).
 
     Every sample without a valid match gets the depth range of the matches
@@ -392,9 +392,17 @@ def propagate(lp: LinePairs, tv: TwoView, I1, I2, j, idx, uv1, dist, keep, alpha
     (``dense.propagate_split_*``). Scanline DP leaves gaps where one line
     alone was ambiguous; the lines beside it often matched there. Each of
     the ``dense.propagate_passes`` passes grows from the valid matches and
-    the previous passes' new ones; the caller validates the result once.
-    Returns the new ``j`` (invalid matches dropped, new ones added) and the
-    mask of new ones.
+    the previous passes' new ones; the caller validates the result.
+
+    The validation drops some matches, often wrong ones next to a depth edge
+    that the first validation kept (their neighbours were missing then);
+    their depths widened their neighbours' ranges past ``propagate_width``.
+    So the caller runs ``dense.propagate_rounds`` rounds, each after a
+    validation, passing the ``state`` a round returns to the next: that round
+    tries only the samples whose range changed and those the validation
+    dropped (a sample that failed with the same range fails again).
+    Returns the new ``j`` (invalid matches dropped, new ones added), the
+    mask of new ones and the state.
     """
     d = cfg.dense
     shift = d.propagate_window_shift if shift is None else shift
@@ -405,15 +413,27 @@ def propagate(lp: LinePairs, tv: TwoView, I1, I2, j, idx, uv1, dist, keep, alpha
     new = np.zeros(len(j), bool)
     start1, step1, _ = lp.side(1)
     baseline = float(np.linalg.norm(tv.t))
-    active = np.ones(shape, np.uint8)
     kernel = np.ones((2 * d.propagate_radius + 1,) * 2, np.uint8)
+    if state is None:
+        active = np.ones(shape, np.uint8)
+    else:
+        old_min, old_max, active = state
+        gmin, gmax = _widen(grids, d.propagate_radius)
+        active = active | (gmin != old_min) | (gmax != old_max)
+        # A match the validation dropped may be kept among its new neighbours.
+        active |= cv2.dilate(_pixel_mask(uv1, ~keep, shape), kernel).astype(bool)
+        active = active.astype(np.uint8)
+        del old_min, old_max
     for _ in range(d.propagate_passes):
+        if not active.any():
+            break
         # One sample of slack: the neighbours' depths are fine-level ones.
         jv, filled = kernels.propagate_pass(I1, lp.offset1, I2, lp.offset2, jv, start1, step1, *alphas, *grids,
                                             baseline, 1, d.propagate_width, d.fill_half_window,
                                             d.propagate_min_zncc, shift, active, max_step,
                                             d.propagate_split_slack, d.propagate_split_margin, d.propagate_radius)
         if not filled.any():
+            active = np.zeros(shape, np.uint8)
             break
         new |= filled
         # The new matches' points seed the next pass.
@@ -423,7 +443,7 @@ def propagate(lp: LinePairs, tv: TwoView, I1, I2, j, idx, uv1, dist, keep, alpha
         # Only pixels whose widened range just changed can match in the next
         # pass: a sample that failed with the same range fails again.
         active = cv2.dilate(_pixel_mask(fuv1, fvalid, shape), kernel)
-    return jv, new
+    return jv, new, (*_widen(grids, d.propagate_radius), active)
 
 
 def _pixel_mask(uv: np.ndarray, mask: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
@@ -542,12 +562,25 @@ def match_pair(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config, pro
     n_propagated = 0
     if cfg.dense.propagate_passes > 0:
         t0 = time.perf_counter()
-        j, new = propagate(lp, tv, I1, I2, j, idx, uv1, dist, keep, alphas, img1.shape[:2], cfg,
-                           shift_max_step(cfg, max(size1 + size2)), window_shift(cfg, max(size1 + size2)))
+        longest = max(size1 + size2)
+        max_step, shift = shift_max_step(cfg, longest), window_shift(cfg, longest)
+        j, new, state = propagate(lp, tv, I1, I2, j, idx, uv1, dist, keep, alphas, img1.shape[:2], cfg, max_step,
+                                  shift)
+        cost[new] = 0.0
+        for _ in range(cfg.dense.propagate_rounds - 1):
+            # The validation drops matches (often wrong ones next to a depth
+            # edge) whose depths widened their neighbours' ranges past what
+            # propagation searches: grow again from the valid ones.
+            idx, line, uv1, uv2, X, dist, keep, med = _validated_points(j, cost, lp, tv, img1.shape[:2], cfg,
+                                                                        pairs=False)
+            j, again, state = propagate(lp, tv, I1, I2, j, idx, uv1, dist, keep, alphas, img1.shape[:2], cfg,
+                                        max_step, shift, state=state)
+            cost[again] = 0.0
+            new |= again
+        del state
         # The line samples and ray angles are used up: the last validation reuses their memory.
         del idx, line, uv1, uv2, X, dist, keep, med, I1, I2, alphas
-        cost[new] = 0.0
-        n_propagated = int(new.sum())
+        n_propagated = int((new & np.isfinite(j)).sum())  # a later round's validation may drop some
         idx, line, uv1, uv2, X, dist, keep, med = _validated_points(j, cost, lp, tv, img1.shape[:2], cfg, smooth)
         timings["propagate"] = time.perf_counter() - t0
     # Index arrays gather rows several times faster than boolean masks.
