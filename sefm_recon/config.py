@@ -110,7 +110,7 @@ class DenseConfig:
     propagate_split_margin: float = 0.02  #: ...and the better end's ZNCC must beat the other's by this much
     #: propagation also tries the window moved this many samples to either side (0 = centred only):
     #: next to a depth edge the centred window straddles it
-    propagate_window_shift: int = 3
+    propagate_window_shift: int = 4
     #: ...but not across an intensity step larger than this (levels of the channel mean between
     #: neighbouring samples at rough.jump_reference_size, less in proportion on larger photos;
     #: 0 = no limit): an occluded sample would take the other side's depth

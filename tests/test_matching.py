@@ -129,11 +129,11 @@ def test_propagation_step_limit_and_window_shift_scale_with_the_photo_size():
     assert sefm.shift_max_step(off, 2000) == np.inf
     # the window is moved farther on larger photos, with the square root of the size
     shift = cfg.dense.propagate_window_shift
-    assert shift == 3
-    assert sefm.window_shift(cfg, 800) == sefm.window_shift(cfg, 1000) == 3
-    assert sefm.window_shift(cfg, 2000) == 4 and sefm.window_shift(cfg, 4000) == 6
+    assert shift == 4
+    assert sefm.window_shift(cfg, 800) == sefm.window_shift(cfg, 1000) == sefm.window_shift(cfg, 2000) == 4
+    assert sefm.window_shift(cfg, 4000) == 6 and sefm.window_shift(cfg, 6000) == 7
     fixed = dataclasses.replace(cfg, rough=dataclasses.replace(cfg.rough, jump_reference_size=0))
-    assert sefm.window_shift(fixed, 4000) == 3
+    assert sefm.window_shift(fixed, 4000) == 4
 
 def test_jump_threshold_shrinks_with_the_photo_size_and_coarse_levels_keep_it(monkeypatch):
     import dataclasses

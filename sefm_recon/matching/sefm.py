@@ -233,19 +233,19 @@ def shift_max_step(cfg: Config, longest: int) -> float:
 def window_shift(cfg: Config, longest: int) -> int:
     """How far a propagation window is moved next to a depth edge, in samples, for a photo ``longest`` px long.
 
-    ``dense.propagate_window_shift`` up to ``rough.jump_reference_size``,
-    growing with the square root of the size above it (4 at 2000 px). An
-    edge spreads over more samples on a larger photo, so the window must
-    move farther to clear it, but the farther it moves the less it says
-    about the sample itself. Measured at 2000 px (seeds 7, 10, 11, 12):
-    4 samples instead of 3 gave coverage at 1 px +0.0005 to +0.0008 and
-    precision -0.0001 to +0.0002; 6 (in proportion to the size) gave
-    coverage +0.0010 and +0.0015 for 0.0005 and 0.0003 of precision (seeds
-    10 and 7). At 1000 px, 4 cost 0.0002 of precision for 0.0008 of
-    coverage (seeds 7, 10-58).
+    ``dense.propagate_window_shift`` up to twice ``rough.jump_reference_size``
+    (2000 px), growing with the square root of the size above it (6 at
+    4000 px). An edge spreads over more samples on a larger photo, so the
+    window must move farther to clear it, but the farther it moves the less
+    it says about the sample itself. Measured with two propagation rounds:
+    at 1000 px 4 samples instead of 3 gave coverage at 1 px +0.0010 for
+    0.0003 of precision (seeds 7, 10-58); at 2000 px 6 instead of 4 gave
+    coverage +0.0003 to +0.0008 for 0.0004 to 0.0006 of precision (seeds 7,
+    10, 11), while 4 instead of 3 had gained coverage +0.0005 to +0.0008
+    (precision within 0.0002; seeds 7, 10, 11, 12).
     """
     shift = cfg.dense.propagate_window_shift
-    ref = cfg.rough.jump_reference_size
+    ref = 2 * cfg.rough.jump_reference_size
     if ref > 0 and longest > ref:
         return int(round(shift * np.sqrt(longest / ref)))
     return shift
