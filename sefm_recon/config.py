@@ -101,6 +101,8 @@ class DenseConfig:
     fill_max_scale: float = 3.0
     propagate_passes: int = 8  #: grow valid matches into unmatched neighbours this many times (0 = off)
     propagate_rounds: int = 2  #: propagation and validation, this many times (the validation drops matches that block growth)
+    bridge_max_gap: int = 4  #: after propagation, interpolate gaps of up to this many samples inside a surface (0 = off)
+    bridge_slope_tol: float = 0.5  #: where the partners on either side advance within this of the gap's slope
     propagate_radius: int = 1  #: px around a sample whose valid matches bound its band
     propagate_width: int = 6  #: ...when that band is at most this many samples wide
     propagate_min_zncc: float = 0.97  #: ZNCC a propagated match needs (fill_half_window)
@@ -224,6 +226,8 @@ _LIMITS: dict[str, tuple[float | None, float | None, bool]] = {
     "pyramid.factor": (2, 16, False),
     "dense.propagate_passes": (0, 16, False),
     "dense.propagate_rounds": (1, 8, False),
+    "dense.bridge_max_gap": (0, 64, False),
+    "dense.bridge_slope_tol": (0, None, False),
     "dense.propagate_radius": (1, 16, False),
     "dense.propagate_width": (1, 256, False),
     "dense.propagate_min_zncc": (-1, 1, False),

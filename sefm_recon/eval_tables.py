@@ -35,6 +35,7 @@ ABLATIONS: dict[str, list[str]] = {
     "- shifted propagation windows (depth edges)": ["dense.propagate_window_shift=0"],
     "- propagation from both sides of a depth edge": ["dense.propagate_split_slack=-1"],
     "- second propagation round (after a validation)": ["dense.propagate_rounds=1"],
+    "- gap bridging (short gaps inside a surface interpolated)": ["dense.bridge_max_gap=0"],
     "- depth-edge rules (no fills across folds, no windows moved across steps)": [
         "dense.fill_max_scale=0", "dense.propagate_shift_max_step=0"],
     "- sub-pixel refinement": ["dense.subpixel=false"],

@@ -648,3 +648,31 @@ def test_next_line_skips_missing_half_planes():
     Lines.phi_step = 2 * np.pi / 628
     Lines.phi = np.arange(628) * Lines.phi_step
     assert next_line(Lines(), 1.0)[-1] == 0
+
+
+def test_bridge_gaps_interpolates_short_gaps_inside_a_surface_only():
+    k = np.arange(40.0)
+    j = 5.0 + 1.2 * k  # a slanted surface
+    j[10:12] = np.nan  # a gap of 2: bridged
+    j[20:25] = np.nan  # 5: too long
+    off = np.array([0, 40], np.int64)
+    out, bridged = mk.bridge_gaps(j, off, 4, 0.5, 2.0, 0.5)
+    np.testing.assert_array_equal(np.flatnonzero(bridged), [10, 11])
+    np.testing.assert_allclose(out[10:12], 5.0 + 1.2 * k[10:12])
+    assert np.isnan(out[20:25]).all()
+    # a depth step in the gap (the partners jump, or bend past the tolerance on one side): left alone
+    step = 5.0 + np.where(k < 11, k, k + 6.0)
+    step[10:12] = np.nan
+    assert not mk.bridge_gaps(step, off, 4, 0.5, 2.0, 0.5)[1].any()
+    bend = 5.0 + np.where(k < 11, k, 11 + 1.9 * (k - 11))
+    bend[11:13] = np.nan
+    assert not mk.bridge_gaps(bend, off, 4, 0.5, 2.0, 0.5)[1].any()
+    assert mk.bridge_gaps(bend, off, 4, 0.5, 2.0, 1.0)[1].sum() == 2
+    # nothing matched beyond an end: not judged, not bridged; gaps do not run across lines
+    edge = 5.0 + k
+    edge[1:3] = np.nan
+    edge[0] = 5.0
+    assert not mk.bridge_gaps(edge[:4], np.array([0, 4], np.int64), 4, 0.5, 2.0, 0.5)[1].any()
+    two = 5.0 + k
+    two[18:22] = np.nan
+    assert not mk.bridge_gaps(two, np.array([0, 20, 40], np.int64), 4, 0.5, 2.0, 0.5)[1].any()

@@ -1157,6 +1157,55 @@ def fill_gaps(I1, off1, I2, off2, j, max_gap, radius, half, min_zncc, max_scale=
 
 
 @njit(parallel=True, cache=True)
+def bridge_gaps(j, off1, max_gap, min_slope, max_slope, slope_tol=np.inf):
+    """Interpolate the partners of gaps of at most ``max_gap`` samples between matched ones on each line.
+
+    Where neither the DP nor the window correlations placed a partner (low
+    texture, noise), a short gap inside a surface is still a surface: its
+    end partners advance ``min_slope`` to ``max_slope`` samples per sample,
+    and the matched samples up to 4 beyond each end continue at that slope
+    within ``slope_tol`` (a depth edge or an occlusion bends it). Returns
+    the copy and the mask of bridged samples.
+    """
+    L = off1.shape[0] - 1
+    out = j.copy()
+    filled = np.zeros(j.shape[0], np.bool_)
+    for l in prange(L):
+        s1 = off1[l]
+        n = off1[l + 1] - s1
+        prev = -1
+        for i in range(n):
+            if np.isnan(j[s1 + i]):
+                continue
+            if prev >= 0 and 1 < i - prev <= max_gap + 1:
+                j0 = j[s1 + prev]
+                slope = (j[s1 + i] - j0) / (i - prev)
+                # the partners on either side must continue at the gap's slope
+                ok = min_slope <= slope <= max_slope
+                for side in range(2):
+                    a0 = prev if side == 0 else i
+                    far = -1
+                    for q in range(1, 5):
+                        k2 = a0 - q if side == 0 else a0 + q
+                        if k2 < 0 or k2 >= n:
+                            break
+                        if not np.isnan(j[s1 + k2]):
+                            far = k2
+                    if far < 0:
+                        ok = False
+                    else:
+                        sl = (j[s1 + a0] - j[s1 + far]) / (a0 - far)
+                        if abs(sl - slope) > slope_tol:
+                            ok = False
+                if ok:
+                    for g in range(prev + 1, i):
+                        out[s1 + g] = j0 + slope * (g - prev)
+                        filled[s1 + g] = True
+            prev = i
+    return out, filled
+
+
+@njit(parallel=True, cache=True)
 def refine_subpixel(I1, off1, I2, off2, j, half, max_shift, slope_radius=0, min_stretch=0.1, c0=0, c1=-1,
                     shear=None, o_first=0, cc=1, min_shear=0.1):
     """Sub-pixel partner positions: a parabola through the ZNCC at j - 1, j, j + 1.

@@ -578,6 +578,12 @@ def match_pair(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config, pro
             cost[again] = 0.0
             new |= again
         del state
+        if d.bridge_max_gap > 0:
+            # Holes the correlation could not fill inside a surface: the
+            # final validation judges the interpolated partners by their
+            # neighbours on the lines beside them.
+            j, bridged = kernels.bridge_gaps(j, lp.offset1, d.bridge_max_gap, 0.5, 2.0, d.bridge_slope_tol)
+            cost[bridged] = 0.0
         # The line samples and ray angles are used up: the last validation reuses their memory.
         del idx, line, uv1, uv2, X, dist, keep, med, I1, I2, alphas
         n_propagated = int((new & np.isfinite(j)).sum())  # a later round's validation may drop some
