@@ -671,14 +671,16 @@ def grid_median_check(uv, value, mask, height, width, radius, tol, min_support, 
 
     Args:
         uv: (N, 2) positions (x, y), COLMAP pixels; value, mask: (N,).
-    Returns (keep (N,) bool, support (N,) int64, median (N,) float64: the
-    estimate, or the point's own value where not estimated).
+    Returns (keep (N,) bool, support (N,) int32, median (N,): the
+    estimate, or the point's own value where not estimated; with ``bins``
+    = 0, ``value`` itself).
     """
     n = uv.shape[0]
     grid = _rasterise(uv, value, mask, height, width)
     keep = np.zeros(n, np.bool_)
-    support = np.zeros(n, np.int64)
-    median = value.astype(np.float64)
+    support = np.zeros(n, np.int32)
+    # The check alone returns the values themselves: a copy costs 24 MB of fresh pages at 2000 px.
+    median = value.astype(np.float64) if bins > 0 else value
     nchunk = min(n, 256)
     width_bin = 2.0 * tol / max(bins, 1)
     for ch in prange(nchunk):
@@ -688,13 +690,26 @@ def grid_median_check(uv, value, mask, height, width, radius, tol, min_support, 
         for k in range(ch * n // nchunk, (ch + 1) * n // nchunk):
             if not mask[k]:
                 continue
-            m = _neighbours(grid, int(np.floor(uv[k, 1])), int(np.floor(uv[k, 0])), radius, buf)
+            r = int(np.floor(uv[k, 1]))
+            c = int(np.floor(uv[k, 0]))
             x = value[k]
+            m = 0
             above = 0
             below = 0
-            for q in range(m):
-                above += buf[q] > x + tol
-                below += buf[q] < x - tol
+            if bins > 0:
+                # Gathered once: the median reads them again.
+                m = _neighbours(grid, r, c, radius, buf)
+                for q in range(m):
+                    above += buf[q] > x + tol
+                    below += buf[q] < x - tol
+            else:
+                for rr in range(max(r - radius, 0), min(r + radius + 1, height)):
+                    for cc in range(max(c - radius, 0), min(c + radius + 1, width)):
+                        v = grid[rr, cc]
+                        if not np.isnan(v) and not (rr == r and cc == c):
+                            m += 1
+                            above += v > x + tol
+                            below += v < x - tol
             support[k] = m
             if m < min_support:
                 keep[k] = not drop_isolated
@@ -1412,31 +1427,24 @@ def fill_from_band(I1, off1, I2, off2, j, lo, hi, max_width, half, min_zncc, max
 
 
 @njit(parallel=True, cache=True)
-def propagate_pass(I1, off1, I2, off2, j, start1, step1, a1, a2, gmin, gmax, baseline, slack, max_width, half,
-                   min_zncc, shift, active, max_step=np.inf, split_slack=-1, split_margin=0.0, radius=0):
-    """One propagation pass: match unmatched samples inside the depth range of the matches around them.
+def propagate_candidates(I1, off1, I2, off2, j, cand, cand_off, start1, step1, a1, a2, gmin, gmax, baseline, slack,
+                         max_width, half, min_zncc, shift, active, max_step=np.inf, split_slack=-1, split_margin=0.0,
+                         radius=0):
+    """:func:`propagate_pass` over a list of unmatched samples, writing their partners into ``j`` in place.
 
-    Sample ``k`` of line ``l`` (at ``start1[l] + k step1[l]``, COLMAP pixels of
-    image 1) without a partner (``j`` NaN) reads the distance range
-    ``gmin``/``gmax`` (H, W) of the pixels within ``radius`` of its pixel
-    (inf where none; reading it here costs less than widening the grids
-    for the few samples tried); its line-2 band (:func:`sample_band`, ``slack``
-    samples wider) at most ``max_width`` samples wide is searched by ZNCC as in
-    :func:`fill_from_band`. Fused in one pass so only the few unmatched
-    samples cost anything; only those on pixels where ``active`` (H, W) is
-    set are tried (the pixels whose range changed since the last pass).
-    With ``split_slack`` >= 0, a band too wide is a depth edge (the
-    neighbours hold two surfaces): the bands of its two end distances,
-    ``split_slack`` samples wider, are searched instead, and the better one's
-    ZNCC must beat the other's by ``split_margin``.
-    Returns the filled copy of ``j`` and the mask of filled samples.
+    ``cand`` (M,) flat sample indices, increasing; ``cand_off`` (L + 1,) the
+    range of each line's in it (``np.searchsorted(cand, off1)``). Each
+    sample reads only its own partner, so filling in place is the same as
+    filling a copy; the list spares a scan of every sample in each pass.
+    Returns the mask (M,) of the filled candidates.
     """
     L = off1.shape[0] - 1
     H, W = gmin.shape
-    out = j.copy()
-    filled = np.zeros(j.shape[0], np.bool_)
+    hit = np.zeros(cand.shape[0], np.bool_)
     for ll in prange(L):
         l = np.int64(ll)
+        if cand_off[l] == cand_off[l + 1]:
+            continue
         s1 = off1[l]
         s2 = off2[l]
         e2 = off2[l + 1]
@@ -1444,10 +1452,9 @@ def propagate_pass(I1, off1, I2, off2, j, start1, step1, a1, a2, gmin, gmax, bas
         b = I2[s2:e2]
         ga = s2
         gb = s2
-        for k in range(off1[l + 1] - s1):
-            i = s1 + k
-            if not np.isnan(j[i]):
-                continue
+        for q in range(cand_off[l], cand_off[l + 1]):
+            i = cand[q]
+            k = i - s1
             c = min(max(int(np.floor(start1[l, 0] + k * step1[l, 0])), 0), W - 1)
             r = min(max(int(np.floor(start1[l, 1] + k * step1[l, 1])), 0), H - 1)
             if not active[r, c]:
@@ -1486,8 +1493,38 @@ def propagate_pass(I1, off1, I2, off2, j, start1, step1, a1, a2, gmin, gmax, bas
             else:
                 continue
             if best >= min_zncc:
-                out[i] = pos
-                filled[i] = True
+                j[i] = pos
+                hit[q] = True
+    return hit
+
+
+@njit(cache=True)
+def propagate_pass(I1, off1, I2, off2, j, start1, step1, a1, a2, gmin, gmax, baseline, slack, max_width, half,
+                   min_zncc, shift, active, max_step=np.inf, split_slack=-1, split_margin=0.0, radius=0):
+    """One propagation pass: match unmatched samples inside the depth range of the matches around them.
+
+    Sample ``k`` of line ``l`` (at ``start1[l] + k step1[l]``, COLMAP pixels of
+    image 1) without a partner (``j`` NaN) reads the distance range
+    ``gmin``/``gmax`` (H, W) of the pixels within ``radius`` of its pixel
+    (inf where none; reading it here costs less than widening the grids
+    for the few samples tried); its line-2 band (:func:`sample_band`, ``slack``
+    samples wider) at most ``max_width`` samples wide is searched by ZNCC as in
+    :func:`fill_from_band`. Fused in one pass so only the few unmatched
+    samples cost anything; only those on pixels where ``active`` (H, W) is
+    set are tried (the pixels whose range changed since the last pass).
+    With ``split_slack`` >= 0, a band too wide is a depth edge (the
+    neighbours hold two surfaces): the bands of its two end distances,
+    ``split_slack`` samples wider, are searched instead, and the better one's
+    ZNCC must beat the other's by ``split_margin``.
+    Returns the filled copy of ``j`` and the mask of filled samples.
+    """
+    out = j.copy()
+    cand = np.flatnonzero(np.isnan(j))
+    hit = propagate_candidates(I1, off1, I2, off2, out, cand, np.searchsorted(cand, off1), start1, step1, a1, a2,
+                               gmin, gmax, baseline, slack, max_width, half, min_zncc, shift, active, max_step,
+                               split_slack, split_margin, radius)
+    filled = np.zeros(j.shape[0], np.bool_)
+    filled[cand[hit]] = True
     return out, filled
 
 

@@ -424,20 +424,23 @@ def propagate(lp: LinePairs, tv: TwoView, I1, I2, j, idx, uv1, dist, keep, alpha
         active |= cv2.dilate(_pixel_mask(uv1, ~keep, shape), kernel).astype(bool)
         active = active.astype(np.uint8)
         del old_min, old_max
+    # The unmatched samples, listed once: each pass tries only these (in place in jv).
+    cand = np.flatnonzero(np.isnan(jv))
     for _ in range(d.propagate_passes):
         if not active.any():
             break
         # One sample of slack: the neighbours' depths are fine-level ones.
-        jv, filled = kernels.propagate_pass(I1, lp.offset1, I2, lp.offset2, jv, start1, step1, *alphas, *grids,
-                                            baseline, 1, d.propagate_width, d.fill_half_window,
-                                            d.propagate_min_zncc, shift, active, max_step,
-                                            d.propagate_split_slack, d.propagate_split_margin, d.propagate_radius)
-        if not filled.any():
+        hit = kernels.propagate_candidates(I1, lp.offset1, I2, lp.offset2, jv, cand, np.searchsorted(cand, lp.offset1),
+                                           start1, step1, *alphas, *grids, baseline, 1, d.propagate_width,
+                                           d.fill_half_window, d.propagate_min_zncc, shift, active, max_step,
+                                           d.propagate_split_slack, d.propagate_split_margin, d.propagate_radius)
+        if not hit.any():
             active = np.zeros(shape, np.uint8)
             break
-        new |= filled
+        fi = cand[hit]
+        cand = cand[~hit]
+        new[fi] = True
         # The new matches' points seed the next pass.
-        fi = np.flatnonzero(filled)
         fuv1, fdist, fvalid = _sample_points(fi, jv, lp, tv)
         depth_grids(fuv1, fdist, shape, fvalid, grids)
         # Only pixels whose widened range just changed can match in the next
