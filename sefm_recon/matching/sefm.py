@@ -573,7 +573,9 @@ def match_pair(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config, pro
         for _ in range(cfg.dense.propagate_rounds - 1):
             # The validation drops matches (often wrong ones next to a depth
             # edge) whose depths widened their neighbours' ranges past what
-            # propagation searches: grow again from the valid ones.
+            # propagation searches: grow again from the valid ones. The last
+            # validation's arrays go first, so this one reuses their memory.
+            del idx, line, uv1, uv2, X, dist, keep, med
             idx, line, uv1, uv2, X, dist, keep, med = _validated_points(j, cost, lp, tv, img1.shape[:2], cfg,
                                                                         pairs=False)
             j, again, state = propagate(lp, tv, I1, I2, j, idx, uv1, dist, keep, alphas, img1.shape[:2], cfg,
