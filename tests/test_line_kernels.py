@@ -334,9 +334,10 @@ def test_stretched_window_finds_the_partner_on_a_slanted_surface():
     src = (tj - 4.3) / 1.5
     b = np.stack([np.interp(src, t, base[:, c]) for c in range(2)], 1).astype(np.float32)
     i, jpos = 50, 1.5 * 50 + 4.3
-    assert mk._zncc3_scaled(a, i, b, 60.0, 7, 1.0) == pytest.approx(mk._zncc3(a, i, b, 60.0, 7), abs=1e-9)
+    unstretched = mk._zncc3_sheared(a, i, b, 60.0, 7, 1.0, 0.0, 0, a.shape[1])
+    assert unstretched == pytest.approx(mk._zncc3(a, i, b, 60.0, 7), abs=1e-9)
     plain = mk._zncc3(a, i, b, jpos, 7)[1]
-    stretched = mk._zncc3_scaled(a, i, b, jpos, 7, 1.5)[1]
+    stretched = mk._zncc3_sheared(a, i, b, jpos, 7, 1.5, 0.0, 0, a.shape[1])[1]
     assert stretched > 0.99 and stretched > plain + 0.05
     # refinement from the whole-sample answer, with and without the stretch
     off1 = np.array([0, n], np.int64)
@@ -511,6 +512,16 @@ def _propagation_scene(seed, ratio):
     return R, t, lp, tv, alphas, I1, I2, gmin, gmax, rng
 
 
+def _propagate_pass(I1, off1, I2, off2, j, *args):
+    """:func:`mk.propagate_candidates` over every unmatched sample: the filled copy of ``j`` and its mask."""
+    out = j.copy()
+    cand = np.flatnonzero(np.isnan(j))
+    hit = mk.propagate_candidates(I1, off1, I2, off2, out, cand, np.searchsorted(cand, off1), *args)
+    filled = np.zeros(len(j), bool)
+    filled[cand[hit]] = True
+    return out, filled
+
+
 def test_propagation_pass_equals_bounds_then_band_then_fill():
     """The fused pass gives what its three steps give one after another."""
     # depths known on a third of the pixels, every sample unmatched but a few
@@ -519,7 +530,7 @@ def test_propagation_pass_equals_bounds_then_band_then_fill():
     wmin, wmax = _widen((gmin, gmax), 1)
     start1, step1, _ = lp.side(1)
     everywhere = np.ones((SIZE[1], SIZE[0]), np.uint8)
-    got, filled = mk.propagate_pass(I1, lp.offset1, I2, lp.offset2, j, start1, step1, *alphas, wmin, wmax,
+    got, filled = _propagate_pass(I1, lp.offset1, I2, lp.offset2, j, start1, step1, *alphas, wmin, wmax,
                                     float(np.linalg.norm(t)), 1, 6, 3, 0.5, 0, everywhere)
     depths = _grid_bounds(lp, wmin, wmax, (1.0, 1.0), (0.0, np.inf))
     lo, hi = search_band(lp, tv, depths, 1, alphas)
@@ -530,14 +541,14 @@ def test_propagation_pass_equals_bounds_then_band_then_fill():
     np.testing.assert_array_equal(got, want)
     # only samples on active pixels are tried; they get the same partners
     active = (rng.random((SIZE[1], SIZE[0])) < 0.5).astype(np.uint8)
-    part, pfilled = mk.propagate_pass(I1, lp.offset1, I2, lp.offset2, j, start1, step1, *alphas, wmin, wmax,
+    part, pfilled = _propagate_pass(I1, lp.offset1, I2, lp.offset2, j, start1, step1, *alphas, wmin, wmax,
                                       float(np.linalg.norm(t)), 1, 6, 3, 0.5, 0, active)
     px = np.floor(lp.all_points1()).astype(int)
     on = active[np.clip(px[:, 1], 0, SIZE[1] - 1), np.clip(px[:, 0], 0, SIZE[0] - 1)] == 1
     np.testing.assert_array_equal(pfilled, filled & on)
     np.testing.assert_array_equal(part[pfilled], got[pfilled])
     # the pass widens the raw grids itself, for the samples it tries: the same partners
-    raw, rfilled = mk.propagate_pass(I1, lp.offset1, I2, lp.offset2, j, start1, step1, *alphas, gmin, gmax,
+    raw, rfilled = _propagate_pass(I1, lp.offset1, I2, lp.offset2, j, start1, step1, *alphas, gmin, gmax,
                                      float(np.linalg.norm(t)), 1, 6, 3, 0.5, 0, everywhere, np.inf, -1, 0.0, 1)
     np.testing.assert_array_equal(rfilled, filled)
     np.testing.assert_array_equal(raw, got)
@@ -574,9 +585,9 @@ def test_propagation_next_to_a_depth_edge_searches_each_surface_in_turn():
     lo, hi = search_band(lp, tv, both, 1, alphas)
     wide = np.isfinite(both[1]) & (hi - lo + 1 > 6)
     assert wide.sum() > 0.5 * np.isfinite(both[1]).sum()
-    plain, off = mk.propagate_pass(*args, -1)
+    plain, off = _propagate_pass(*args, -1)
     assert not off[wide].any()  # too wide: left alone
-    got, on = mk.propagate_pass(*args, 1, 0.0)
+    got, on = _propagate_pass(*args, 1, 0.0)
     np.testing.assert_array_equal(on[~wide], off[~wide])  # narrow bands: as before
     np.testing.assert_array_equal(got[~wide], plain[~wide])
     on &= wide
@@ -592,7 +603,7 @@ def test_propagation_next_to_a_depth_edge_searches_each_surface_in_turn():
             assert np.all((in_near | inside)[on])
             assert in_near.sum() > 100 and inside.sum() > 100
     # a margin between the two surfaces' correlations keeps only the clearer samples
-    _, strict = mk.propagate_pass(*args, 1, 0.2)
+    _, strict = _propagate_pass(*args, 1, 0.2)
     strict &= wide
     assert 0 < strict.sum() < on.sum() and not (strict & ~on).any()
 

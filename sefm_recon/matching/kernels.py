@@ -693,23 +693,12 @@ def grid_median_check(uv, value, mask, height, width, radius, tol, min_support, 
             r = int(np.floor(uv[k, 1]))
             c = int(np.floor(uv[k, 0]))
             x = value[k]
-            m = 0
+            m = _neighbours(grid, r, c, radius, buf)
             above = 0
             below = 0
-            if bins > 0:
-                # Gathered once: the median reads them again.
-                m = _neighbours(grid, r, c, radius, buf)
-                for q in range(m):
-                    above += buf[q] > x + tol
-                    below += buf[q] < x - tol
-            else:
-                for rr in range(max(r - radius, 0), min(r + radius + 1, height)):
-                    for cc in range(max(c - radius, 0), min(c + radius + 1, width)):
-                        v = grid[rr, cc]
-                        if not np.isnan(v) and not (rr == r and cc == c):
-                            m += 1
-                            above += v > x + tol
-                            below += v < x - tol
+            for q in range(m):
+                above += buf[q] > x + tol
+                below += buf[q] < x - tol
             support[k] = m
             if m < min_support:
                 keep[k] = not drop_isolated
@@ -882,21 +871,11 @@ def _local_slope(j, i, n, r):
 
 
 @njit(cache=True)
-def _zncc3_scaled(a, i, b, jpos, half, g):
-    """:func:`_zncc3` with line 2's window stretched by ``g`` (its samples at ``jpos + g s + d``, d = -1, 0, 1).
-
-    On a slanted surface the partner of ``i + s`` is near ``jpos + g s``, not
-    ``jpos + s``; the stretched window correlates there without bias.
-    """
-    return _zncc3_sheared(a, i, b, jpos, half, g, 0.0, 0, a.shape[1])
-
-
-@njit(cache=True)
 def _zncc3_sheared(a, i, b, jpos, half, g, h, o_first, cc):
     """:func:`_zncc3` with line 2's window stretched by ``g`` and each neighbour line's moved by its shear.
 
     On a slanted surface the partner of ``i + s`` is near ``jpos + g s``, not
-    ``jpos + s`` (:func:`_zncc3_scaled`). The columns of ``a`` and ``b`` are
+    ``jpos + s``; the stretched window correlates there without bias. The columns of ``a`` and ``b`` are
     neighbour lines ``o_first, o_first + 1, ...`` (``cc`` channels each). On
     a surface whose depth changes across lines, neighbour ``o``'s partner is
     ``o h`` samples along line 2 from the centre line's (:func:`line_shear`);
@@ -949,7 +928,10 @@ def _index_at(a, target, k):
 
 @njit(cache=True)
 def _lerp_match(j, k):
-    """Partner position at fractional index ``k`` between two matched samples of a line (NaN unless both are, 2 or fewer apart)."""
+    """Partner position at fractional index ``k`` between two matched samples of a line.
+
+    NaN unless both are matched and their partners 2 or fewer samples apart.
+    """
     q = int(np.floor(k))
     if q < 0 or q + 1 >= j.shape[0]:
         return np.nan
@@ -1430,13 +1412,26 @@ def fill_from_band(I1, off1, I2, off2, j, lo, hi, max_width, half, min_zncc, max
 def propagate_candidates(I1, off1, I2, off2, j, cand, cand_off, start1, step1, a1, a2, gmin, gmax, baseline, slack,
                          max_width, half, min_zncc, shift, active, max_step=np.inf, split_slack=-1, split_margin=0.0,
                          radius=0):
-    """:func:`propagate_pass` over a list of unmatched samples, writing their partners into ``j`` in place.
+    """One propagation pass: match unmatched samples inside the depth range of the matches around them.
 
-    ``cand`` (M,) flat sample indices, increasing; ``cand_off`` (L + 1,) the
-    range of each line's in it (``np.searchsorted(cand, off1)``). Each
-    sample reads only its own partner, so filling in place is the same as
-    filling a copy; the list spares a scan of every sample in each pass.
-    Returns the mask (M,) of the filled candidates.
+    The samples tried are listed: ``cand`` (M,) flat sample indices,
+    increasing, and ``cand_off`` (L + 1,) the range of each line's in it
+    (``np.searchsorted(cand, off1)``); the list spares a scan of every
+    sample in each pass. Sample ``k`` of line ``l`` (at ``start1[l] + k
+    step1[l]``, COLMAP pixels of image 1) reads the distance range
+    ``gmin``/``gmax`` (H, W) of the pixels within ``radius`` of its pixel
+    (inf where none; reading it here costs less than widening the grids
+    for the few samples tried); its line-2 band (:func:`sample_band`, ``slack``
+    samples wider) at most ``max_width`` samples wide is searched by ZNCC as in
+    :func:`fill_from_band`. Only samples on pixels where ``active`` (H, W)
+    is set are tried (the pixels whose range changed since the last pass).
+    With ``split_slack`` >= 0, a band too wide is a depth edge (the
+    neighbours hold two surfaces): the bands of its two end distances,
+    ``split_slack`` samples wider, are searched instead, and the better one's
+    ZNCC must beat the other's by ``split_margin``.
+    The partners found are written into ``j`` in place (each sample reads
+    only its own, so this is the same as filling a copy). Returns the mask
+    (M,) of the filled candidates.
     """
     L = off1.shape[0] - 1
     H, W = gmin.shape
@@ -1496,36 +1491,6 @@ def propagate_candidates(I1, off1, I2, off2, j, cand, cand_off, start1, step1, a
                 j[i] = pos
                 hit[q] = True
     return hit
-
-
-@njit(cache=True)
-def propagate_pass(I1, off1, I2, off2, j, start1, step1, a1, a2, gmin, gmax, baseline, slack, max_width, half,
-                   min_zncc, shift, active, max_step=np.inf, split_slack=-1, split_margin=0.0, radius=0):
-    """One propagation pass: match unmatched samples inside the depth range of the matches around them.
-
-    Sample ``k`` of line ``l`` (at ``start1[l] + k step1[l]``, COLMAP pixels of
-    image 1) without a partner (``j`` NaN) reads the distance range
-    ``gmin``/``gmax`` (H, W) of the pixels within ``radius`` of its pixel
-    (inf where none; reading it here costs less than widening the grids
-    for the few samples tried); its line-2 band (:func:`sample_band`, ``slack``
-    samples wider) at most ``max_width`` samples wide is searched by ZNCC as in
-    :func:`fill_from_band`. Fused in one pass so only the few unmatched
-    samples cost anything; only those on pixels where ``active`` (H, W) is
-    set are tried (the pixels whose range changed since the last pass).
-    With ``split_slack`` >= 0, a band too wide is a depth edge (the
-    neighbours hold two surfaces): the bands of its two end distances,
-    ``split_slack`` samples wider, are searched instead, and the better one's
-    ZNCC must beat the other's by ``split_margin``.
-    Returns the filled copy of ``j`` and the mask of filled samples.
-    """
-    out = j.copy()
-    cand = np.flatnonzero(np.isnan(j))
-    hit = propagate_candidates(I1, off1, I2, off2, out, cand, np.searchsorted(cand, off1), start1, step1, a1, a2,
-                               gmin, gmax, baseline, slack, max_width, half, min_zncc, shift, active, max_step,
-                               split_slack, split_margin, radius)
-    filled = np.zeros(j.shape[0], np.bool_)
-    filled[cand[hit]] = True
-    return out, filled
 
 
 @njit(parallel=True, cache=True)

@@ -319,24 +319,24 @@ def next_line(lp: LinePairs, step: float) -> np.ndarray:
     return out
 
 
-def _line_points(j, cost, max_cost: float, min_angle: float, lp: LinePairs, tv: TwoView, pairs: bool = True):
-    """:func:`kernels.line_matches_to_points` with this pair's line geometry and cameras (``min_angle`` radians)."""
+def _pair_geometry(lp: LinePairs, tv: TwoView) -> tuple:
+    """The point kernels' line geometry and cameras: ``start1, step1, off1, start2, step2, Kinv1, Kinv2, Rt, c2``."""
     Rt = np.ascontiguousarray(tv.R.T)
     start1, step1, off1 = lp.side(1)
     start2, step2, _ = lp.side(2)
-    return kernels.line_matches_to_points(j, cost, max_cost, start1, step1, off1, start2, step2, np.linalg.inv(tv.K1),
-                                          np.linalg.inv(tv.K2), Rt, -Rt @ np.asarray(tv.t, np.float64), min_angle,
-                                          pairs)
+    return (start1, step1, off1, start2, step2, np.linalg.inv(tv.K1), np.linalg.inv(tv.K2), Rt,
+            -Rt @ np.asarray(tv.t, np.float64))
+
+
+def _line_points(j, cost, max_cost: float, min_angle: float, lp: LinePairs, tv: TwoView, pairs: bool = True):
+    """:func:`kernels.line_matches_to_points` with this pair's line geometry and cameras (``min_angle`` radians)."""
+    return kernels.line_matches_to_points(j, cost, max_cost, *_pair_geometry(lp, tv), min_angle, pairs)
 
 
 def _sample_points(samples: np.ndarray, j, lp: LinePairs, tv: TwoView):
     """:func:`_line_points` (no angle limit) of the listed samples: ``uv1, dist, valid``."""
-    Rt = np.ascontiguousarray(tv.R.T)
-    start1, step1, off1 = lp.side(1)
-    start2, step2, _ = lp.side(2)
-    line = np.searchsorted(off1, samples, side="right") - 1
-    return kernels.sample_points(samples, line, j, start1, step1, off1, start2, step2, np.linalg.inv(tv.K1),
-                                 np.linalg.inv(tv.K2), Rt, -Rt @ np.asarray(tv.t, np.float64), 0.0)
+    line = np.searchsorted(lp.offset1, samples, side="right") - 1
+    return kernels.sample_points(samples, line, j, *_pair_geometry(lp, tv), 0.0)
 
 
 def _validated_points(j, cost, lp: LinePairs, tv: TwoView, shape: tuple[int, int], cfg: Config,
