@@ -56,7 +56,7 @@ def main(argv=None) -> int:
     else:
         tmp = tempfile.TemporaryDirectory()
         root = Path(tmp.name)
-    scene = render_scene(seed=a.seed, width=a.width, height=a.height, n_views=a.views)
+    scene = render_scene(seed=a.seed, width=a.width, height=a.height, n_views=a.views, style="classic")
     ws = write_workspace(scene, root / "ws")
     align = (1.0, np.eye(3), np.zeros(3))
     if a.sfm:

@@ -42,7 +42,7 @@ def main() -> None:
               f"of the truth: {ev['precision@0.5']:.3f} / {ev['precision@1']:.3f}")
         return
     args.out.mkdir(parents=True, exist_ok=True)
-    scene = render_scene(seed=args.seed, width=args.width, height=args.height)
+    scene = render_scene(seed=args.seed, width=args.width, height=args.height, style="classic")
     W, H = args.width * args.scale, args.height * args.scale
     for v in scene.views:
         big = cv2.resize(cv2.cvtColor(v.image, cv2.COLOR_RGB2BGR), (W, H), interpolation=cv2.INTER_CUBIC)

@@ -20,7 +20,7 @@ SEED, WIDTH, HEIGHT = 1, 640, 480
 
 
 def main(out: Path = Path("data_samples/scene")) -> None:
-    scene = render_scene(seed=SEED, width=WIDTH, height=HEIGHT)
+    scene = render_scene(seed=SEED, width=WIDTH, height=HEIGHT, style="classic")
     for i, view in enumerate(scene.views):
         view.name = f"view_{i:03d}.jpg"
     if out.exists():

@@ -89,7 +89,7 @@ def bench(size=(2000, 1500), seed: int = 7, repeat: int = 2, overrides=(), write
 
     cfg = load_config(None, ["output.progress=false", *overrides])
     t0 = time.perf_counter()
-    scene = render_scene(seed=seed, width=size[0], height=size[1])
+    scene = render_scene(seed=seed, width=size[0], height=size[1], style="classic")
     v1, v2 = scene.views[:2]
     logger.info("rendered %dx%d pair (seed %d) in %.1f s", size[0], size[1], seed, time.perf_counter() - t0)
     cov = covisibility_mask(v1, v2)
@@ -134,7 +134,7 @@ def scaling(sizes, seed: int = 7, overrides=()) -> list[dict]:
     cfg = load_config(None, ["output.progress=false", "output.max_size=0", *overrides])
     rows = []
     for w, h in sizes:
-        scene = render_scene(seed=seed, width=w, height=h)
+        scene = render_scene(seed=seed, width=w, height=h, style="classic")
         v1, v2 = scene.views[:2]
         for _ in range(2):
             out, res = run_sefm(v1, v2, cfg, write=True)

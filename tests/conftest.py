@@ -21,4 +21,4 @@ def small_scene():
     """A 320x240 generated pair with ground truth (rendered once per session)."""
     from sefm_recon.synthetic import render_scene
 
-    return render_scene(seed=11, width=320, height=240)
+    return render_scene(seed=11, width=320, height=240, style="classic")

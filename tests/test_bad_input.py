@@ -125,7 +125,7 @@ def data(tmp_path_factory, small_scene):
     # Another scene: unrelated to the pair.
     from sefm_recon.synthetic import render_scene
 
-    write_rgb(d / "other.png", render_scene(seed=5, width=w, height=h, n_views=1).views[0].image)
+    write_rgb(d / "other.png", render_scene(seed=5, width=w, height=h, n_views=1, style="classic").views[0].image)
     # Camera 1 turned by 5 degrees about its centre: a pure rotation, H = K R K^-1.
     R = cv2.Rodrigues(np.array([0.2, 1.0, 0.1]) / np.linalg.norm([0.2, 1.0, 0.1]) * np.radians(5))[0]
     T = np.array([[1, 0, -0.5], [0, 1, -0.5], [0, 0, 1]])  # COLMAP -> OpenCV pixel centres

@@ -98,7 +98,7 @@ def _sfm_workspace(scene, root: Path) -> Path:
 
 @pytest.fixture(scope="module")
 def scene3():
-    return render_scene(seed=21, width=480, height=360, n_views=3)
+    return render_scene(seed=21, width=480, height=360, n_views=3, style="classic")
 
 
 @pytest.fixture(scope="module")
@@ -224,7 +224,7 @@ def test_non_empty_out_is_refused_without_overwrite(text_run):
 
 @pytest.fixture(scope="module")
 def small_scene3():
-    return render_scene(seed=33, width=320, height=240, n_views=3)
+    return render_scene(seed=33, width=320, height=240, n_views=3, style="classic")
 
 
 @pytest.mark.slow
@@ -299,7 +299,7 @@ def test_dask_scheduler_on_a_local_cluster(small_scene3, tmp_path):
 
 @pytest.fixture(scope="module")
 def tiny_ws(tmp_path_factory):
-    scene = render_scene(seed=5, width=96, height=72, n_views=3, supersample=1)
+    scene = render_scene(seed=5, width=96, height=72, n_views=3, supersample=1, style="classic")
     return write_workspace(scene, tmp_path_factory.mktemp("tiny") / "ws")
 
 
@@ -361,7 +361,7 @@ def test_missing_image_files_are_named(tiny_ws, tmp_path):
 @pytest.mark.slow
 def test_pair_without_baseline_is_skipped_with_a_reason(tmp_path, caplog):
     """Two images taken from the same centre give no depth: that pair is skipped, the others run."""
-    scene = render_scene(seed=33, width=320, height=240, n_views=2)
+    scene = render_scene(seed=33, width=320, height=240, n_views=2, style="classic")
     ws = write_workspace(scene, tmp_path / "ws")
     rec = pycolmap.Reconstruction(str(ws / "sparse"))
     # a third image: view 0 again, from the same centre

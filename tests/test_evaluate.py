@@ -11,13 +11,13 @@ from sefm_recon.synthetic import SyntheticView, render_scene
 
 @pytest.fixture(scope="module")
 def pair():
-    sc = render_scene(seed=21, width=160, height=120)
+    sc = render_scene(seed=21, width=160, height=120, style="classic")
     return sc.views
 
 
 @pytest.fixture(scope="module")
 def pair320():
-    sc = render_scene(seed=1, width=320, height=240)
+    sc = render_scene(seed=1, width=320, height=240, style="classic")
     return sc.views
 
 
