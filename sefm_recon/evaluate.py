@@ -33,6 +33,7 @@ __all__ = [
     "true_correspondences",
     "covisibility_mask",
     "evaluate_matches",
+    "score_matches",
     "surface_distances",
 ]
 
@@ -139,15 +140,27 @@ def evaluate_matches(uv1, uv2, view1, view2, thresholds=(1.0, 3.0), covisible=No
 
     ``covisible``: optional precomputed :func:`covisibility_mask` (view1, view2).
     """
+    cov_mask = covisibility_mask(view1, view2) if covisible is None else covisible
+    return score_matches(uv1, uv2, lambda uv: true_correspondences(view1, view2, uv), cov_mask, thresholds)
+
+
+def score_matches(uv1, uv2, truth, covisible, thresholds=(1.0, 3.0)) -> dict:
+    """Precision / coverage of matches against any ground truth (the definitions above).
+
+    ``truth(uv1 (N, 2)) -> (uv2_true (N, 2), covisible (N,) bool)`` gives the true
+    correspondence of COLMAP positions of image 1 (:func:`true_correspondences` for a
+    rendered scene, :meth:`sefm_recon.realgt.StereoCase.truth` for a real pair);
+    ``covisible`` is the (H, W) bool mask of image 1's co-visible pixel centres.
+    """
     uv1 = np.asarray(uv1, np.float64).reshape(-1, 2)
     uv2 = np.asarray(uv2, np.float64).reshape(-1, 2)
     if len(uv1) != len(uv2):
         raise ValueError(f"uv1 and uv2 differ in length: {len(uv1)} vs {len(uv2)}")
     n = len(uv1)
-    cov_mask = covisibility_mask(view1, view2) if covisible is None else np.asarray(covisible, bool)
+    cov_mask = np.asarray(covisible, bool)
     H, W = cov_mask.shape
     n_cov = int(cov_mask.sum())
-    uv2_true, cov = true_correspondences(view1, view2, uv1)
+    uv2_true, cov = truth(uv1) if n else (np.zeros((0, 2)), np.zeros(0, bool))
     with np.errstate(invalid="ignore"):
         err = np.linalg.norm(uv2 - uv2_true, axis=1) if n else np.zeros(0)
     with np.errstate(invalid="ignore"):
@@ -166,8 +179,7 @@ def evaluate_matches(uv1, uv2, view1, view2, thresholds=(1.0, 3.0), covisible=No
         g = good & inside
         held[i[g], j[g]] = True
         covg[f"coverage@{key}"] = float((held & cov_mask).sum() / n_cov) if n_cov else 0.0
-    out = {"matches": n, **prec, **covg, "covisible_pixels": n_cov}
-    return out
+    return {"matches": n, **prec, **covg, "covisible_pixels": n_cov}
 
 
 def surface_distances(xyz, views) -> np.ndarray:
