@@ -1,4 +1,5 @@
-"""Dense baseline for comparison: OpenCV StereoSGBM on a truly rectified pair.
+"""Dense baselines for comparison: OpenCV StereoSGBM on a truly rectified pair, and
+OpenCV's DIS optical flow checked forward and backward.
 
 The pair is rectified with the rotations of ``cv2.stereoRectify`` computed from the
 true relative pose; the rectified cameras keep the focal length of view 1 and get a
@@ -20,7 +21,12 @@ import numpy as np
 
 log = logging.getLogger(__name__)
 
-__all__ = ["sgbm_matches", "scene_depth_range", "rectify_pair"]
+__all__ = ["sgbm_matches", "scene_depth_range", "rectify_pair", "epipoles_inside", "dis_matches",
+           "DIS_AGREEMENT_PX"]
+
+#: DIS matches are kept where the forward flow and the backward flow at its end agree
+#: within this many pixels (the peer's definition in the evaluation).
+DIS_AGREEMENT_PX = 1.0
 
 
 def scene_depth_range(view1, view2, margin: float = 0.03) -> tuple[float, float]:
@@ -98,12 +104,14 @@ def sgbm_matches(
     block_size: int = 5,
     depth_range=None,
     mode: int = cv2.STEREO_SGBM_MODE_SGBM_3WAY,
+    margin_px: float = 0.0,
 ):
     """Dense matches from StereoSGBM on the truly rectified pair.
 
     ``depth_range=(zmin, zmax)`` (camera z-depth, e.g. :func:`scene_depth_range`) sets
     the disparity search range; otherwise ``disparity_range=(dmin, dmax)`` in
     rectified pixels of ``f * B / Z`` (0 = infinitely far); default ``(0, 0.3 * W)``.
+    Either is widened by ``margin_px`` on each side.
     Returns ``(uv1 (N, 2), uv2 (N, 2))`` float64 COLMAP coordinates in the original
     images, one match per valid disparity pixel of the left rectified image.
     """
@@ -114,7 +122,7 @@ def sgbm_matches(
     Rr1, Rr2, B = rectify_pair(K1, R1, t1, K2, R2, t2, (W1, H1), (W2, H2))
     if B < 0:  # camera 2 is on the left: run with the roles swapped
         uv2, uv1 = sgbm_matches(
-            img2, img1, K2, R2, t2, K1, R1, t1, disparity_range, block_size, depth_range, mode
+            img2, img1, K2, R2, t2, K1, R1, t1, disparity_range, block_size, depth_range, mode, margin_px
         )
         return uv1, uv2
     Kc1, Kc2 = _cv_K(K1), _cv_K(K2)
@@ -141,6 +149,7 @@ def sgbm_matches(
         d_lo, d_hi = float(disparity_range[0]), float(disparity_range[1])
     else:
         d_lo, d_hi = 0.0, 0.3 * W1
+    d_lo, d_hi = d_lo - margin_px, d_hi + margin_px
     min_d = int(math.floor(d_lo + dc)) - 2
     num_d = int(math.ceil((d_hi - d_lo + 4) / 16.0)) * 16
     max_d = min_d + num_d
@@ -183,3 +192,52 @@ def sgbm_matches(
     ok &= (u1 >= 0) & (u1 < W1) & (v1 >= 0) & (v1 < H1)
     ok &= (u2 >= 0) & (u2 < W2) & (v2 >= 0) & (v2 < H2)
     return np.column_stack([u1[ok], v1[ok]]), np.column_stack([u2[ok], v2[ok]])
+
+
+def epipoles_inside(K1, R1, t1, K2, R2, t2, size1, size2) -> bool:
+    """Whether either epipole lies inside its image: no planar rectification exists then."""
+    R1, R2 = np.asarray(R1, np.float64), np.asarray(R2, np.float64)
+    C1 = -R1.T @ np.asarray(t1, np.float64).reshape(3)
+    C2 = -R2.T @ np.asarray(t2, np.float64).reshape(3)
+    for K, R, t, C, (w, h) in ((K1, R1, t1, C2, size1), (K2, R2, t2, C1, size2)):
+        p = np.asarray(K, np.float64) @ (R @ C + np.asarray(t, np.float64).reshape(3))
+        if abs(p[2]) > 1e-12 * np.linalg.norm(p):
+            u, v = p[:2] / p[2]
+            if 0 <= u < w and 0 <= v < h:
+                return True
+    return False
+
+
+def dis_matches(img1, img2, agreement_px: float = DIS_AGREEMENT_PX):
+    """Dense matches from OpenCV DIS optical flow (PRESET_MEDIUM, grey images).
+
+    The flow is computed forward and backward; a pixel of image 1 is kept where
+    the backward flow at the end of its forward flow brings it back within
+    ``agreement_px`` and the end lies inside image 2. Images of different sizes are
+    padded to a common canvas at the top left (their coordinates do not change).
+    Returns ``(uv1 (N, 2), uv2 (N, 2))`` float64 COLMAP coordinates.
+    """
+    g1 = cv2.cvtColor(np.asarray(img1), cv2.COLOR_RGB2GRAY)
+    g2 = cv2.cvtColor(np.asarray(img2), cv2.COLOR_RGB2GRAY)
+    (h1, w1), (h2, w2) = g1.shape, g2.shape
+    H, W = max(h1, h2), max(w1, w2)
+    c1 = np.zeros((H, W), np.uint8)
+    c2 = np.zeros((H, W), np.uint8)
+    c1[:h1, :w1] = g1
+    c2[:h2, :w2] = g2
+    dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
+    fwd = dis.calc(c1, c2, None)
+    bwd = dis.calc(c2, c1, None)
+    jj, ii = np.meshgrid(np.arange(W, dtype=np.float32), np.arange(H, dtype=np.float32))
+    x2 = jj + fwd[..., 0]
+    y2 = ii + fwd[..., 1]
+    back = cv2.remap(bwd, x2, y2, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=(np.nan, np.nan))
+    with np.errstate(invalid="ignore"):
+        err = np.hypot(fwd[..., 0] + back[..., 0], fwd[..., 1] + back[..., 1])
+        keep = (err <= agreement_px) & (x2 >= -0.5) & (x2 < w2 - 0.5) & (y2 >= -0.5) & (y2 < h2 - 0.5)
+    keep[h1:, :] = False
+    keep[:, w1:] = False
+    ii, jj = np.nonzero(keep)
+    uv1 = np.column_stack([jj + 0.5, ii + 0.5]).astype(np.float64)
+    uv2 = np.column_stack([x2[ii, jj] + 0.5, y2[ii, jj] + 0.5]).astype(np.float64)
+    return uv1, uv2

@@ -82,17 +82,31 @@ def build_parser() -> argparse.ArgumentParser:
                              "(needs pip install 'sefm-recon[dask]')")
     _common(colmap)
 
-    ev = sub.add_parser("eval", help="precision/coverage tables on generated scenes: SeFM, SIFT, StereoSGBM",
-                        description="Render generated scenes with ground truth, match them with SeFM, SIFT and "
-                                    "StereoSGBM (true rectification), and print the paper's Table 1 as Markdown; "
-                                    "--ablation adds a table with each SeFM stage switched off in turn.")
-    ev.add_argument("--seeds", type=int, nargs="+", default=[400, 401, 402], metavar="SEED")
-    ev.add_argument("--size", default="1000x750", metavar="WxH")
-    ev.add_argument("--pose", choices=["true", "estimated"], default="true",
-                    help="use the true relative pose, or estimate it from SIFT as 'pair' does")
-    ev.add_argument("--noise", type=float, default=0.0, help="sensor noise sigma, 8-bit levels")
-    ev.add_argument("--ablation", action="store_true", help="also the ablation table (slower)")
+    ev = sub.add_parser("eval", help="SeFM beside StereoSGBM and DIS optical flow, on real pairs with ground truth "
+                                     "(--real) or on generated scenes",
+                        description="Match every pair with SeFM (true pose and its own pose), OpenCV StereoSGBM "
+                                    "(true rectification) and OpenCV DIS optical flow, score them against the ground "
+                                    "truth and print Markdown tables: the means per variant (real) or motion "
+                                    "(generated), then every pair. --real reads Middlebury pairs (e.g. "
+                                    "../shared/data/real_gt) in three variants: rect, unrect (camera 2 turned 13 deg) "
+                                    "and conv (cameras turned towards each other, 14 deg).")
+    ev.add_argument("--real", nargs="?", const="", metavar="DIR",
+                    help="real pairs with ground truth (default folder: ../shared/data/real_gt beside the project)")
+    ev.add_argument("--pairs", nargs="+", metavar="NAME", help="with --real: only these pairs (e.g. Cloth1 tsukuba)")
+    ev.add_argument("--variants", nargs="+", choices=["rect", "unrect", "conv"], help="with --real: only these")
+    ev.add_argument("--seeds", type=int, nargs="+", default=list(range(20)), metavar="SEED",
+                    help="generated scenes (default 0..19); the motions lateral, converging, forward and zoom in turn")
+    ev.add_argument("--size", default="1000x750", metavar="WxH", help="generated image size")
+    ev.add_argument("--style", choices=["random", "classic"], default="random",
+                    help="generated scenes: randomised textures, photometry and motion, or the old textured "
+                         "noise-free family")
+    ev.add_argument("--ablation", action="store_true",
+                    help="instead: SeFM with each stage switched off in turn, on the generated scenes")
+    ev.add_argument("--pose", choices=["true", "estimated"], default="true", help="with --ablation: the pose used")
     ev.add_argument("--json", metavar="FILE", help="write the rows as JSON")
+    ev.add_argument("--results", nargs="+", metavar="MARKDOWN",
+                    help="also replace the tables' sections (between '<!-- eval:NAME begin/end -->' markers) in these "
+                         "Markdown files, e.g. docs/results.md README.md")
     ev.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE")
     ev.add_argument("-q", "--quiet", action="store_true")
     ev.add_argument("-v", "--verbose", action="store_true")
@@ -162,23 +176,44 @@ def _cmd_colmap(args) -> int:
 def _cmd_eval(args) -> int:
     import json
 
+    from . import eval_tables as et
     from .config import load_config
-    from .eval_tables import ablation_table, format_ablation_table, format_scene_table, scene_table
 
-    load_config(None, args.overrides)  # bad keys fail before any rendering
-    w, h = _size(args.size)
-    rows = scene_table(args.seeds, (w, h), args.pose, args.noise, args.overrides)
-    print(f"Scenes {w}x{h}, {args.pose} pose:\n")
-    print(format_scene_table(rows))
-    out = {"size": [w, h], "pose": args.pose, "scenes": rows}
+    load_config(None, args.overrides)  # bad keys fail before any work
+    if not args.verbose:  # one progress line per pair, not the pipeline's own lines
+        logging.getLogger("sefm_recon").setLevel(logging.WARNING)
+        logging.getLogger("sefm_recon.eval_tables").setLevel(logging.ERROR if args.quiet else logging.INFO)
     if args.ablation:
-        abl = ablation_table(args.seeds, (w, h), args.pose, args.noise, args.overrides)
-        print(f"\nAblation (mean over seeds {', '.join(map(str, args.seeds))}):\n")
-        print(format_ablation_table(abl))
-        out["ablation"] = abl
+        w, h = _size(args.size)
+        rows = et.ablation_table(args.seeds, (w, h), args.pose, args.overrides, args.style)
+        sections = {"ablation": None}
+        text = (f"SeFM ablation, mean over generated seeds {' '.join(map(str, args.seeds))} ({args.style}, "
+                f"{w}x{h}, {args.pose} pose):\n\n" + et.format_ablation_table(rows))
+    elif args.real is not None:
+        from .io.real_gt import DEFAULT_REAL_GT
+
+        root = args.real or DEFAULT_REAL_GT
+        et.warm_up()
+        rows = et.real_table(root, args.variants, args.pairs, overrides=args.overrides)
+        text = ("Means per variant (a failed run scores 0):\n\n" + et.format_means(rows) +
+                "\n\nEvery pair:\n\n" + et.format_rows(rows))
+        sections = {"real": None, "readme": et.format_summary(rows)}
+    else:
+        w, h = _size(args.size)
+        et.warm_up()
+        rows = et.generated_table(args.seeds, (w, h), overrides=args.overrides, style=args.style)
+        sections = {"generated": None}
+        text = (f"Generated scenes ({args.style}, {w}x{h}), means per motion (a failed run scores 0):\n\n"
+                + et.format_means(rows, "motion") + "\n\nEvery scene:\n\n" + et.format_rows(rows, "seed"))
+    print(text)
     if args.json:
         with open(args.json, "w") as f:
-            json.dump(out, f, indent=1)
+            json.dump(rows, f, indent=1)
+    if args.results:
+        from .io.results import replace_sections
+
+        for path in args.results:
+            replace_sections(path, {k: v if v is not None else text for k, v in sections.items()})
     return 0
 
 
