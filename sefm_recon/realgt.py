@@ -38,6 +38,8 @@ __all__ = [
     "lr_occlusion",
     "make_case",
     "rotation",
+    "turn_angle_deg",
+    "calibration",
 ]
 
 #: f = FOCAL_FACTOR * max(W, H): a normal lens (about 45 deg across the long side).
