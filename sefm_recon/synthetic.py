@@ -22,8 +22,8 @@ Two styles (``render_scene(style=...)``):
     :class:`SceneOptions` (see :func:`draw_options`; every drawn value is recorded in
     ``scene.meta["options"]``):
 
-    * a texture family per surface (:data:`TEXTURE_FAMILIES`): ``classic`` (today's
-      texture), ``detail`` (today's high-detail variant), ``smooth`` (low-frequency
+    * a texture family per surface (:data:`TEXTURE_FAMILIES`): ``classic`` (the classic
+      texture), ``detail`` (its high-detail variant), ``smooth`` (low-frequency
       noise only: long wavelengths, three octaves, no pattern), ``weak`` (the classic
       texture with its albedo contrast compressed to 0.1-0.3 about its mean),
       ``stripes`` (regular painted stripes) and ``tiles`` (a tile or checker grid with
