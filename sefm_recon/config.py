@@ -67,6 +67,9 @@ class PyramidConfig:
 
 @dataclass
 class DenseConfig:
+    #: "sefm": the paper's DP along each line pair with its repairs; "sgm": semi-global matching
+    #: over the polar line images (matching/sgm.py), the keys below then do not apply
+    method: str = "sefm"
     occlusion_penalty: float = 5.0  #: DP cost of a sample without partner
     band_fraction: float = 0.5  #: DP band half width, as a share of the segment length
     band_min: int = 4
@@ -294,7 +297,7 @@ MIN_MAX_SIZE = 256
 
 
 #: String keys and their allowed values.
-_CHOICES: dict[str, tuple[str, ...]] = {"output.normals": ("grid", "knn")}
+_CHOICES: dict[str, tuple[str, ...]] = {"output.normals": ("grid", "knn"), "dense.method": ("sefm", "sgm")}
 
 
 def validate(cfg: Config) -> Config:

@@ -124,7 +124,12 @@ def reconstruct_pair(
         tv = with_known_pose(v1.K, v2.K, pose[0], pose[1], xy1, xy2, cfg.geometry.ransac_max_error)
     timings["two_view"] = time.perf_counter() - t0
 
-    dm: DenseMatches = match_pair(v1.image, v2.image, tv, cfg, progress=progress)
+    if cfg.dense.method == "sgm":
+        from .matching.sgm import match_pair_sgm
+
+        dm: DenseMatches = match_pair_sgm(v1.image, v2.image, tv, cfg, progress=progress)
+    else:
+        dm = match_pair(v1.image, v2.image, tv, cfg, progress=progress)
     timings.update(dm.timings)
 
     t0 = time.perf_counter()
