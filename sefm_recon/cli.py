@@ -107,6 +107,9 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--results", nargs="+", metavar="MARKDOWN",
                     help="also replace the tables' sections (between '<!-- eval:NAME begin/end -->' markers) in these "
                          "Markdown files, e.g. docs/results.md README.md")
+    ev.add_argument("--section", metavar="NAME",
+                    help="with --results: write the main table between '<!-- eval:NAME ...' markers instead of the "
+                         "default real, generated or ablation (e.g. a table made with --set)")
     ev.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE")
     ev.add_argument("-q", "--quiet", action="store_true")
     ev.add_argument("-v", "--verbose", action="store_true")
@@ -212,6 +215,8 @@ def _cmd_eval(args) -> int:
     if args.results:
         from .io.results import replace_sections
 
+        if args.section:  # a variant's table: its own section, and never the README's summary
+            sections = {args.section: None}
         for path in args.results:
             replace_sections(path, {k: v if v is not None else text for k, v in sections.items()})
     return 0
