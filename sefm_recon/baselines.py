@@ -196,11 +196,12 @@ def sgbm_matches(
 
 def epipoles_inside(K1, R1, t1, K2, R2, t2, size1, size2) -> bool:
     """Whether either epipole lies inside its image: no planar rectification exists then."""
+    from .geometry.epipolar import epipoles
+
     R1, R2 = np.asarray(R1, np.float64), np.asarray(R2, np.float64)
-    C1 = -R1.T @ np.asarray(t1, np.float64).reshape(3)
-    C2 = -R2.T @ np.asarray(t2, np.float64).reshape(3)
-    for K, R, t, C, (w, h) in ((K1, R1, t1, C2, size1), (K2, R2, t2, C1, size2)):
-        p = np.asarray(K, np.float64) @ (R @ C + np.asarray(t, np.float64).reshape(3))
+    R = R2 @ R1.T  # cam2_from_cam1
+    t = np.asarray(t2, np.float64).reshape(3) - R @ np.asarray(t1, np.float64).reshape(3)
+    for p, (w, h) in zip(epipoles(np.asarray(K1, np.float64), np.asarray(K2, np.float64), R, t), (size1, size2)):
         if abs(p[2]) > 1e-12 * np.linalg.norm(p):
             u, v = p[:2] / p[2]
             if 0 <= u < w and 0 <= v < h:

@@ -189,7 +189,7 @@ def _cmd_eval(args) -> int:
     if args.ablation:
         w, h = _size(args.size)
         rows = et.ablation_table(args.seeds, (w, h), args.pose, args.overrides, args.style)
-        sections = {"ablation": None}
+        main, extra = "ablation", {}
         text = (f"SeFM ablation, mean over generated seeds {' '.join(map(str, args.seeds))} ({args.style}, "
                 f"{w}x{h}, {args.pose} pose):\n\n" + et.format_ablation_table(rows))
     elif args.real is not None:
@@ -200,12 +200,12 @@ def _cmd_eval(args) -> int:
         rows = et.real_table(root, args.variants, args.pairs, overrides=args.overrides)
         text = ("Means per variant (a failed run scores 0):\n\n" + et.format_means(rows) +
                 "\n\nEvery pair:\n\n" + et.format_rows(rows))
-        sections = {"real": None, "readme": et.format_summary(rows)}
+        main, extra = "real", {"readme": et.format_summary(rows)}
     else:
         w, h = _size(args.size)
         et.warm_up()
         rows = et.generated_table(args.seeds, (w, h), overrides=args.overrides, style=args.style)
-        sections = {"generated": None}
+        main, extra = "generated", {}
         text = (f"Generated scenes ({args.style}, {w}x{h}), means per motion (a failed run scores 0):\n\n"
                 + et.format_means(rows, "motion") + "\n\nEvery scene:\n\n" + et.format_rows(rows, "seed"))
     print(text)
@@ -215,10 +215,10 @@ def _cmd_eval(args) -> int:
     if args.results:
         from .io.results import replace_sections
 
-        if args.section:  # a variant's table: its own section, and never the README's summary
-            sections = {args.section: None}
+        # a table made with --section (a variant's) gets its own section and leaves the README's summary alone
+        sections = {args.section: text} if args.section else {main: text, **extra}
         for path in args.results:
-            replace_sections(path, {k: v if v is not None else text for k, v in sections.items()})
+            replace_sections(path, sections)
     return 0
 
 

@@ -35,7 +35,7 @@ import numpy as np
 
 from .config import load_config
 from .errors import InputError
-from .evaluate import covisibility_mask, score_matches, true_correspondences
+from .evaluate import covisibility_mask, pixel_index, score_matches, true_correspondences
 
 logger = logging.getLogger(__name__)
 
@@ -124,6 +124,12 @@ def generated_case(seed: int, size=(1000, 750), motion: str | None = None, style
     return GeneratedCase(str(seed), kind, scene.views[0], scene.views[1])
 
 
+def generated_cases(seeds, size=(1000, 750), style: str = "random"):
+    """:func:`generated_case` of each seed, the motion kinds taken in turn (random style)."""
+    for k, seed in enumerate(seeds):
+        yield generated_case(seed, size, MOTIONS[k % len(MOTIONS)] if style == "random" else None, style)
+
+
 def _cameras(case):
     from .io.cameras import pinhole_camera
 
@@ -176,10 +182,7 @@ def score_case(case, uv1, uv2, covisible=None) -> dict:
     uv1 = np.asarray(uv1, np.float64).reshape(-1, 2)
     uv2 = np.asarray(uv2, np.float64).reshape(-1, 2)
     judged = case.judged()
-    h, w = judged.shape
-    j = np.clip(np.floor(uv1[:, 0]).astype(np.int64), 0, w - 1)
-    i = np.clip(np.floor(uv1[:, 1]).astype(np.int64), 0, h - 1)
-    keep = judged[i, j]
+    keep = judged[pixel_index(uv1, judged.shape)]
     cov = case.covisible() if covisible is None else covisible
     return score_matches(uv1[keep], uv2[keep], case.truth, cov)
 
@@ -232,10 +235,9 @@ def generated_table(seeds, size=(1000, 750), methods: Iterable[str] = METHODS, o
                     style: str = "random") -> list[dict]:
     """Rows of :func:`run_case` for generated scenes; the motion kinds are taken in turn."""
     rows = []
-    for k, seed in enumerate(seeds):
-        case = generated_case(seed, size, MOTIONS[k % len(MOTIONS)] if style == "random" else None, style)
+    for k, case in enumerate(generated_cases(seeds, size, style), 1):
         rows += run_case(case, methods, overrides)
-        logger.info("[%d/%d] seed %d (%s) done", k + 1, len(seeds), seed, case.variant)
+        logger.info("[%d/%d] seed %s (%s) done", k, len(seeds), case.name, case.variant)
     return rows
 
 
@@ -292,8 +294,7 @@ def format_rows(rows: list[dict], what: str = "pair") -> str:
 
 def ablation_table(seeds, size=(1000, 750), pose="true", overrides=(), style: str = "random") -> list[dict]:
     """Mean metrics of SeFM over generated scenes with each stage switched off (or on) in turn."""
-    cases = [generated_case(seed, size, MOTIONS[k % len(MOTIONS)] if style == "random" else None, style)
-             for k, seed in enumerate(seeds)]
+    cases = list(generated_cases(seeds, size, style))
     covs = [c.covisible() for c in cases]
     rows = []
     for name, extra in ABLATIONS.items():

@@ -34,6 +34,7 @@ __all__ = [
     "covisibility_mask",
     "evaluate_matches",
     "score_matches",
+    "pixel_index",
     "surface_distances",
 ]
 
@@ -48,12 +49,17 @@ def _corners(depth: np.ndarray, uv: np.ndarray):
     return bilinear_corners(depth.shape[0], depth.shape[1], uv)
 
 
+def pixel_index(uv: np.ndarray, shape: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray]:
+    """Row and column (each (N,) int64) of the pixels holding COLMAP positions ``uv`` (N, 2),
+    clamped to an image of ``shape`` (H, W, ...)."""
+    i = np.clip(np.floor(uv[:, 1]).astype(np.int64), 0, shape[0] - 1)
+    j = np.clip(np.floor(uv[:, 0]).astype(np.int64), 0, shape[1] - 1)
+    return i, j
+
+
 def _nearest(depth: np.ndarray, uv: np.ndarray) -> np.ndarray:
     """Depth of the pixel containing ``uv`` (clamped to the image)."""
-    H, W = depth.shape
-    j = np.clip(np.floor(uv[:, 0]).astype(np.int64), 0, W - 1)
-    i = np.clip(np.floor(uv[:, 1]).astype(np.int64), 0, H - 1)
-    return depth[i, j].astype(np.float64)
+    return depth[pixel_index(uv, depth.shape)].astype(np.float64)
 
 
 def sample_depth(depth: np.ndarray, uv: np.ndarray, rel: float = DISCONTINUITY_REL) -> np.ndarray:

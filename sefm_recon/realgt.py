@@ -172,6 +172,7 @@ class StereoCase:
         co-visible when it lies inside the published image 1 on a pixel whose
         disparity is known and not occluded.
         """
+        from .evaluate import pixel_index
         from .reconstruct.points import bilinear_corners
 
         uv, inside = self._published(uv1)
@@ -180,8 +181,7 @@ class StereoCase:
         i0, i1, j0, j1, fx, fy = bilinear_corners(H, W, uv)
         q = np.stack([disp[i0, j0], disp[i0, j1], disp[i1, j0], disp[i1, j1]])
         bil = (q[0] * (1 - fx) + q[1] * fx) * (1 - fy) + (q[2] * (1 - fx) + q[3] * fx) * fy
-        ci = np.clip(np.floor(uv[:, 1]).astype(np.int64), 0, H - 1)
-        cj = np.clip(np.floor(uv[:, 0]).astype(np.int64), 0, W - 1)
+        ci, cj = pixel_index(uv, disp.shape)
         with np.errstate(invalid="ignore"):
             smooth = np.isfinite(q).all(axis=0) & (q.max(axis=0) - q.min(axis=0) <= EDGE_DISPARITY_PX)
         d = np.where(smooth, bil, disp[ci, cj])
@@ -202,11 +202,10 @@ class StereoCase:
     def judged(self) -> np.ndarray:
         """(H, W) bool: pixels of ``img1`` whose matches can be judged: outside the
         published image 1 (nothing there to match), or on a known disparity."""
+        from .evaluate import pixel_index
+
         uv, inside = self._published(self._centres())
-        H, W = self.pair.disp.shape
-        ci = np.clip(np.floor(uv[:, 1]).astype(np.int64), 0, H - 1)
-        cj = np.clip(np.floor(uv[:, 0]).astype(np.int64), 0, W - 1)
-        known = np.isfinite(self.pair.disp[ci, cj])
+        known = np.isfinite(self.pair.disp[pixel_index(uv, self.pair.disp.shape)])
         return (~inside | known).reshape(self.img1.shape[:2])
 
     def depth_range(self) -> tuple[float, float]:

@@ -39,16 +39,12 @@ def textured_pair(h=120, w=160, d=6.0, seed=0) -> RealPair:
     tex = cv2.GaussianBlur(rng.uniform(0, 255, (h, 2 * w)).astype(np.float32), (0, 0), 1.2)
     disp = np.full((h, w), d)
     disp[40:80, 60:100] = 2 * d
-    jj = np.arange(w)[None, :] + w / 2
-    img1 = np.empty((h, w), np.float32)
-    img2 = np.empty((h, w), np.float32)
-    for i in range(h):  # image 2 sees texture column x + w/2 - disp at x - disp
-        img1[i] = np.interp(jj[0], np.arange(2 * w), tex[i])
-    xs = np.arange(w, dtype=np.float64)
+    xs = np.arange(w)
+    img1 = tex[:, w // 2 + xs]  # pixel x of image 1 shows texture column x + w/2
     disp2 = np.full((h, w), d)
     disp2[40:80, 60 - int(2 * d):100 - int(2 * d)] = 2 * d
-    for i in range(h):
-        img2[i] = np.interp(xs + disp2[i] + w / 2, np.arange(2 * w), tex[i])
+    # pixel x of image 2 shows what image 1 shows at x + disparity
+    img2 = np.take_along_axis(tex, (xs + disp2 + w // 2).astype(np.int64), axis=1)
     rgb = [np.repeat(np.clip(a, 0, 255).astype(np.uint8)[:, :, None], 3, axis=2) for a in (img1, img2)]
     return RealPair("plane", rgb[0], rgb[1], disp, lr_occlusion(disp, disp2))
 
