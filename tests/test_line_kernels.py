@@ -233,7 +233,7 @@ def test_points_at_distance_lie_on_the_ray_and_project_to_the_epipolar_line():
     rng = np.random.default_rng(0)
     uv1 = rng.uniform([0, 0], [640, 480], (50, 2))
     dist = rng.uniform(2, 10, 50)
-    X, uv2 = mk.points_at_distance(np.linalg.inv(K1), K2, R, t, uv1, dist)
+    X, uv2 = gk.points_at_distance(np.linalg.inv(K1), K2, R, t, uv1, dist)
     np.testing.assert_allclose(np.linalg.norm(X, axis=1), dist)
     np.testing.assert_allclose(project(K1, np.eye(3), np.zeros(3), X), uv1, atol=1e-9)
     np.testing.assert_allclose(project(K2, R, t, X), uv2, atol=1e-9)

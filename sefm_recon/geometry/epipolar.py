@@ -101,7 +101,7 @@ def ray_angles(K: np.ndarray, Rc: np.ndarray, basis: np.ndarray, xy: np.ndarray)
     ``Rc`` rotates the camera's axes into camera 1's (identity for camera 1,
     ``R.T`` for camera 2).
     """
-    from ..matching.kernels import ray_angles as kernel
+    from .kernels import ray_angles as kernel
 
     Minv = np.ascontiguousarray(Rc @ np.linalg.inv(K))
     return kernel(Minv, np.ascontiguousarray(basis, np.float64), np.ascontiguousarray(xy, np.float64).reshape(-1, 2))

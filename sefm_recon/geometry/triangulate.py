@@ -16,7 +16,7 @@ def triangulate(K1, K2, R, t, uv1, uv2):
         X (N, 3) points; valid (N,) bool: finite, in front of both cameras.
         angle (N,) triangulation angle, radians.
     """
-    from ..matching.kernels import triangulate_midpoint
+    from .kernels import triangulate_midpoint
 
     uv1 = np.ascontiguousarray(uv1, np.float64).reshape(-1, 2)
     uv2 = np.ascontiguousarray(uv2, np.float64).reshape(-1, 2)

@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from ..geometry.kernels import pixel_ray, sample_band
+from ..geometry.kernels import ray_midpoint, sample_band
 
 # Back-pointer codes of the DP tables.
 _DIAG, _UP, _LEFT = 0, 1, 2
@@ -1260,110 +1260,6 @@ def refine_subpixel(I1, off1, I2, off2, j, half, max_shift, slope_radius=0, min_
     return out, zncc
 
 
-@njit(cache=True)
-def _midpoint(Kinv1, Kinv2, Rt, c2, x1, y1, x2, y2):
-    """Midpoint of the shortest segment between the rays of pixels (x1, y1) and (x2, y2).
-
-    Returns X0, X1, X2 (camera-1 frame), s1, s2 (distances along the unit rays;
-    NaN for parallel rays) and the cosine of the angle between the rays.
-    """
-    a0 = Kinv1[0, 0] * x1 + Kinv1[0, 1] * y1 + Kinv1[0, 2]
-    a1 = Kinv1[1, 0] * x1 + Kinv1[1, 1] * y1 + Kinv1[1, 2]
-    a2 = Kinv1[2, 0] * x1 + Kinv1[2, 1] * y1 + Kinv1[2, 2]
-    q0 = Kinv2[0, 0] * x2 + Kinv2[0, 1] * y2 + Kinv2[0, 2]
-    q1 = Kinv2[1, 0] * x2 + Kinv2[1, 1] * y2 + Kinv2[1, 2]
-    q2 = Kinv2[2, 0] * x2 + Kinv2[2, 1] * y2 + Kinv2[2, 2]
-    b0 = Rt[0, 0] * q0 + Rt[0, 1] * q1 + Rt[0, 2] * q2
-    b1 = Rt[1, 0] * q0 + Rt[1, 1] * q1 + Rt[1, 2] * q2
-    b2 = Rt[2, 0] * q0 + Rt[2, 1] * q1 + Rt[2, 2] * q2
-    na = np.sqrt(a0 * a0 + a1 * a1 + a2 * a2)
-    nb = np.sqrt(b0 * b0 + b1 * b1 + b2 * b2)
-    a0 /= na
-    a1 /= na
-    a2 /= na
-    b0 /= nb
-    b1 /= nb
-    b2 /= nb
-    dot = a0 * b0 + a1 * b1 + a2 * b2
-    e = a0 * c2[0] + a1 * c2[1] + a2 * c2[2]
-    f = b0 * c2[0] + b1 * c2[1] + b2 * c2[2]
-    den = 1.0 - dot * dot
-    if den > 0.0:
-        s1 = (e - dot * f) / den
-        s2 = (dot * e - f) / den
-    else:
-        s1 = np.nan
-        s2 = np.nan
-    return (0.5 * (s1 * a0 + c2[0] + s2 * b0), 0.5 * (s1 * a1 + c2[1] + s2 * b1),
-            0.5 * (s1 * a2 + c2[2] + s2 * b2), s1, s2, dot)
-
-
-@njit(parallel=True, cache=True)
-def points_at_distance(Kinv1, K2, R, t, uv1, dist):
-    """Points at distance ``dist`` along the rays of pixels ``uv1`` of camera 1, and their pixels in camera 2.
-
-    Camera 2 is ``x_cam2 = R X + t``. Each returned ``uv2`` lies on the
-    epipolar line of its ``uv1``, whatever the distance.
-    Returns X (N, 3) camera-1 frame, uv2 (N, 2).
-    """
-    n = uv1.shape[0]
-    X = np.empty((n, 3))
-    uv2 = np.empty((n, 2))
-    for kk in prange(n):
-        k = np.int64(kk)
-        r0, r1, r2 = pixel_ray(Kinv1, uv1[k, 0], uv1[k, 1])
-        s = dist[k] / np.sqrt(r0 * r0 + r1 * r1 + r2 * r2)
-        x0, x1, x2 = r0 * s, r1 * s, r2 * s
-        X[k, 0], X[k, 1], X[k, 2] = x0, x1, x2
-        y0 = R[0, 0] * x0 + R[0, 1] * x1 + R[0, 2] * x2 + t[0]
-        y1 = R[1, 0] * x0 + R[1, 1] * x1 + R[1, 2] * x2 + t[1]
-        y2 = R[2, 0] * x0 + R[2, 1] * x1 + R[2, 2] * x2 + t[2]
-        p0 = K2[0, 0] * y0 + K2[0, 1] * y1 + K2[0, 2] * y2
-        p1 = K2[1, 0] * y0 + K2[1, 1] * y1 + K2[1, 2] * y2
-        p2 = K2[2, 0] * y0 + K2[2, 1] * y1 + K2[2, 2] * y2
-        uv2[k, 0] = p0 / p2
-        uv2[k, 1] = p1 / p2
-    return X, uv2
-
-
-@njit(parallel=True, cache=True)
-def triangulate_midpoint(Kinv1, Kinv2, Rt, c2, uv1, uv2):
-    """Midpoint triangulation; see :func:`sefm_recon.geometry.triangulate.triangulate`.
-
-    Rt is R^T (camera-2 rays into camera-1 axes), c2 camera 2's centre in camera 1.
-    Returns X (N, 3), s1 (N,), s2 (N,), cos_angle (N,).
-    """
-    n = uv1.shape[0]
-    X = np.empty((n, 3))
-    s1o = np.empty(n)
-    s2o = np.empty(n)
-    co = np.empty(n)
-    for kk in prange(n):
-        k = np.int64(kk)
-        X[k, 0], X[k, 1], X[k, 2], s1o[k], s2o[k], co[k] = _midpoint(Kinv1, Kinv2, Rt, c2, uv1[k, 0], uv1[k, 1],
-                                                                     uv2[k, 0], uv2[k, 1])
-    return X, s1o, s2o, co
-
-
-@njit(parallel=True, cache=True)
-def ray_angles(Minv, basis, xy):
-    """(phi, alpha) of pixel rays; see :func:`sefm_recon.geometry.epipolar.ray_angles`.
-
-    ``Minv`` maps homogeneous pixels to rays in camera-1 axes (Rc K^-1).
-    """
-    n = xy.shape[0]
-    phi = np.empty(n)
-    alpha = np.empty(n)
-    for k in prange(n):
-        r0, r1, r2 = pixel_ray(Minv, xy[k, 0], xy[k, 1])
-        rb = r0 * basis[0, 0] + r1 * basis[0, 1] + r2 * basis[0, 2]
-        ra = r0 * basis[1, 0] + r1 * basis[1, 1] + r2 * basis[1, 2]
-        re = r0 * basis[2, 0] + r1 * basis[2, 1] + r2 * basis[2, 2]
-        phi[k] = np.arctan2(re, ra)
-        alpha[k] = np.arctan2(np.sqrt(ra * ra + re * re), rb)
-    return phi, alpha
-
-
 @njit(parallel=True, cache=True)
 def fill_from_band(I1, off1, I2, off2, j, lo, hi, max_width, half, min_zncc, max_scale=np.inf):
     """Match unmatched samples whose search band is narrow (a coarser level bounded it).
@@ -1561,10 +1457,10 @@ def _sample_pair(l, k, jj, start1, step1, start2, step2, Kinv1, Kinv2, Rt, c2, c
     y1 = start1[l, 1] + k * step1[l, 1]
     x2 = start2[l, 0] + jj * step2[l, 0]
     y2 = start2[l, 1] + jj * step2[l, 1]
-    X0, X1, X2, s1, s2, dot = _midpoint(Kinv1, Kinv2, Rt, c2, x1, y1, x2, y2)
-    d = np.sqrt(X0 * X0 + X1 * X1 + X2 * X2)
-    ok = 1.0 - dot * dot > 1e-12 and s1 > 0 and s2 > 0 and np.isfinite(d) and dot <= cos_max
-    return x1, y1, x2, y2, X0, X1, X2, d, ok
+    m = ray_midpoint(Kinv1, Kinv2, Rt, c2, x1, y1, x2, y2)
+    d = np.sqrt(m.x * m.x + m.y * m.y + m.z * m.z)
+    ok = 1.0 - m.cos * m.cos > 1e-12 and m.s1 > 0 and m.s2 > 0 and np.isfinite(d) and m.cos <= cos_max
+    return x1, y1, x2, y2, m.x, m.y, m.z, d, ok
 
 
 @njit(parallel=True, cache=True)

@@ -370,8 +370,10 @@ def _validated_points(j, cost, lp: LinePairs, tv: TwoView, shape: tuple[int, int
 
 def _at_distance(uv1: np.ndarray, dist: np.ndarray, tv: TwoView):
     """Points at ``dist`` along the rays of ``uv1`` and their partners, on the epipolar lines: ``X, uv2``."""
+    from ..geometry.kernels import points_at_distance
+
     f64 = lambda a: np.ascontiguousarray(a, np.float64)  # noqa: E731
-    return kernels.points_at_distance(f64(np.linalg.inv(tv.K1)), f64(tv.K2), f64(tv.R), f64(np.ravel(tv.t)),
+    return points_at_distance(f64(np.linalg.inv(tv.K1)), f64(tv.K2), f64(tv.R), f64(np.ravel(tv.t)),
                                       f64(uv1), f64(dist))
 
 
