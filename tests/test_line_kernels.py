@@ -7,7 +7,8 @@ import pytest
 from sefm_recon.geometry import kernels as gk
 from sefm_recon.geometry.epipolar import line_alphas, line_pairs, ray_angles, sample_line_channels
 from sefm_recon.matching import kernels as mk
-from sefm_recon.matching.sefm import CoarseLevel, _widen, depth_grids, invert_band, search_band
+from sefm_recon.matching.band import depth_grids, invert_band, search_band, widen
+from sefm_recon.matching.sefm import CoarseLevel
 from sefm_recon.geometry.two_view import TwoView
 
 from .conftest import rot_y
@@ -103,12 +104,12 @@ def _grid_bounds(lp, gmin, gmax, scale, depths):
 def _coarse_bounds(lp, coarse, radius, depths):
     """Reference ranges of :func:`coarse_search_band`: the coarse matches' widened grids, read under each sample."""
     dm = coarse.matches
-    grids = _widen(depth_grids(dm.uv1, np.linalg.norm(dm.xyz, axis=1), coarse.shape), radius)
+    grids = widen(depth_grids(dm.uv1, np.linalg.norm(dm.xyz, axis=1), coarse.shape), radius)
     return _grid_bounds(lp, *grids, coarse.scale, depths)
 
 
 def test_coarse_band_in_one_pass_equals_bounds_then_band():
-    from sefm_recon.matching.sefm import coarse_search_band
+    from sefm_recon.matching.band import coarse_search_band
 
     R, t, lp = _lp()
     tv = TwoView(K, K, R, t)
@@ -128,7 +129,7 @@ def test_coarse_band_in_one_pass_equals_bounds_then_band():
 
 
 def test_coarse_bounds_follow_the_coarse_depths_and_fall_back_elsewhere():
-    from sefm_recon.matching.sefm import coarse_search_band
+    from sefm_recon.matching.band import coarse_search_band
 
     R, t, lp = _lp()
 
@@ -527,7 +528,7 @@ def test_propagation_pass_equals_bounds_then_band_then_fill():
     # depths known on a third of the pixels, every sample unmatched but a few
     R, t, lp, tv, alphas, I1, I2, gmin, gmax, rng = _propagation_scene(5, 1.02)
     j = np.where(rng.random(len(I1)) < 0.1, 5.0, np.nan)
-    wmin, wmax = _widen((gmin, gmax), 1)
+    wmin, wmax = widen((gmin, gmax), 1)
     start1, step1, _ = lp.side(1)
     everywhere = np.ones((SIZE[1], SIZE[0]), np.uint8)
     got, filled = _propagate_pass(I1, lp.offset1, I2, lp.offset2, j, start1, step1, *alphas, wmin, wmax,
@@ -555,6 +556,8 @@ def test_propagation_pass_equals_bounds_then_band_then_fill():
 
 
 def test_sample_points_are_those_of_the_line_matches():
+    from sefm_recon.matching.points import PairGeometry, line_matches_to_points, sample_points
+
     R, t, lp = _lp()
     rng = np.random.default_rng(3)
     n = int(lp.offset1[-1])
@@ -564,10 +567,10 @@ def test_sample_points_are_those_of_the_line_matches():
     Kinv = np.linalg.inv(K)
     Rt = np.ascontiguousarray(R.T)
     c2 = -Rt @ np.asarray(t, np.float64)
-    idx, line, uv1, _, _, dist, valid = mk.line_matches_to_points(j, np.zeros(n), 1.0, start1, step1, off1, start2,
-                                                                 step2, Kinv, Kinv, Rt, c2, 0.0, False)
+    geo = PairGeometry(start1, step1, off1, start2, step2, Kinv, Kinv, Rt, c2)
+    idx, line, uv1, _, _, dist, valid = line_matches_to_points(j, np.zeros(n), 1.0, geo, 0.0, False)
     pick = np.sort(rng.choice(len(idx), 500, replace=False))
-    got = mk.sample_points(idx[pick], line[pick], j, start1, step1, off1, start2, step2, Kinv, Kinv, Rt, c2, 0.0)
+    got = sample_points(idx[pick], line[pick], j, geo, 0.0)
     np.testing.assert_array_equal(got[0], uv1[pick])
     np.testing.assert_array_equal(got[1], dist[pick])
     np.testing.assert_array_equal(got[2], valid[pick])
@@ -624,8 +627,6 @@ def test_galloping_search_equals_bisection_from_any_guess():
 
 
 def test_depth_grids_add_points_in_place_as_if_all_at_once():
-    from sefm_recon.matching.sefm import depth_grids
-
     rng = np.random.default_rng(2)
     uv = rng.uniform(-1, 11, size=(300, 2))  # some outside the 8x10 grid
     dist = rng.uniform(1, 5, size=300)

@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from ..geometry.kernels import ray_midpoint, sample_band
+from ..geometry.kernels import sample_band
 
 # Back-pointer codes of the DP tables.
 _DIAG, _UP, _LEFT = 0, 1, 2
@@ -1389,98 +1389,3 @@ def propagate_candidates(I1, off1, I2, off2, j, cand, cand_off, start1, step1, a
     return hit
 
 
-@njit(parallel=True, cache=True)
-def line_matches_to_points(j, cost, max_cost, start1, step1, off1, start2, step2, Kinv1, Kinv2, Rt, c2, min_angle,
-                           pairs=True):
-    """Matched samples -> pixel pairs and midpoint-triangulated points, in line order.
-
-    Sample ``i`` of line ``l`` (flat index ``off1[l] + i``) with a finite partner
-    position ``j`` on line 2 and ``cost <= max_cost`` becomes the pair
-    ``start1[l] + i step1[l]``, ``start2[l] + j step2[l]``; see
-    :func:`sefm_recon.geometry.triangulate.triangulate` for the geometry.
-
-    Returns (compacted, M matches):
-        idx (M,) flat sample index; line (M,); uv1, uv2 (M, 2); X (M, 3) camera-1 frame;
-        dist (M,) distance from camera 1; valid (M,) bool: finite, in front of both
-        cameras, triangulation angle at least ``min_angle`` radians.
-        With ``pairs`` False, uv2 and X are empty: callers that need only the
-        depths skip writing (and faulting in) 40 bytes a match.
-    """
-    L = off1.shape[0] - 1
-    count = np.zeros(L + 1, np.int64)
-    for ll in prange(L):
-        l = np.int64(ll)
-        c = 0
-        for i in range(off1[l], off1[l + 1]):
-            if np.isfinite(j[i]) and cost[i] <= max_cost:
-                c += 1
-        count[l + 1] = c
-    pos = np.cumsum(count)
-    M = pos[L]
-    idx = np.empty(M, np.int64)
-    line = np.empty(M, np.int64)
-    uv1 = np.empty((M, 2))
-    P = M if pairs else 0
-    uv2 = np.empty((P, 2))
-    X = np.empty((P, 3))
-    dist = np.empty(M)
-    valid = np.empty(M, np.bool_)
-    cos_max = np.cos(min_angle)
-    for ll in prange(L):
-        l = np.int64(ll)
-        p = pos[l]
-        for i in range(off1[l], off1[l + 1]):
-            if not (np.isfinite(j[i]) and cost[i] <= max_cost):
-                continue
-            x1, y1, x2, y2, X0, X1, X2, d, ok = _sample_pair(l, i - off1[l], j[i], start1, step1, start2, step2,
-                                                             Kinv1, Kinv2, Rt, c2, cos_max)
-            idx[p] = i
-            line[p] = l
-            uv1[p, 0] = x1
-            uv1[p, 1] = y1
-            if pairs:
-                uv2[p, 0] = x2
-                uv2[p, 1] = y2
-                X[p, 0] = X0
-                X[p, 1] = X1
-                X[p, 2] = X2
-            dist[p] = d
-            valid[p] = ok
-            p += 1
-    return idx, line, uv1, uv2, X, dist, valid
-
-
-@njit(inline="always")
-def _sample_pair(l, k, jj, start1, step1, start2, step2, Kinv1, Kinv2, Rt, c2, cos_max):
-    """Sample ``k`` of line ``l`` and its partner ``jj``: both pixels, the midpoint point, its distance and validity."""
-    x1 = start1[l, 0] + k * step1[l, 0]
-    y1 = start1[l, 1] + k * step1[l, 1]
-    x2 = start2[l, 0] + jj * step2[l, 0]
-    y2 = start2[l, 1] + jj * step2[l, 1]
-    m = ray_midpoint(Kinv1, Kinv2, Rt, c2, x1, y1, x2, y2)
-    d = np.sqrt(m.x * m.x + m.y * m.y + m.z * m.z)
-    ok = 1.0 - m.cos * m.cos > 1e-12 and m.s1 > 0 and m.s2 > 0 and np.isfinite(d) and m.cos <= cos_max
-    return x1, y1, x2, y2, m.x, m.y, m.z, d, ok
-
-
-@njit(parallel=True, cache=True)
-def sample_points(samples, line, j, start1, step1, off1, start2, step2, Kinv1, Kinv2, Rt, c2, min_angle):
-    """:func:`line_matches_to_points` for the listed samples only: ``uv1`` (M, 2), ``dist`` (M,), ``valid`` (M,).
-
-    ``samples`` (M,) flat sample indices with finite ``j``, ``line`` (M,) their lines.
-    """
-    M = samples.shape[0]
-    uv1 = np.empty((M, 2))
-    dist = np.empty(M)
-    valid = np.empty(M, np.bool_)
-    cos_max = np.cos(min_angle)
-    for p in prange(M):
-        i = samples[p]
-        l = line[p]
-        x1, y1, _, _, _, _, _, d, ok = _sample_pair(l, i - off1[l], j[i], start1, step1, start2, step2, Kinv1, Kinv2,
-                                                    Rt, c2, cos_max)
-        uv1[p, 0] = x1
-        uv1[p, 1] = y1
-        dist[p] = d
-        valid[p] = ok
-    return uv1, dist, valid

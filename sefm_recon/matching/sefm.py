@@ -17,10 +17,12 @@ import numpy as np
 
 from ..config import Config
 from ..errors import InputError
-from ..geometry.epipolar import LinePairs, line_alphas, line_pairs, sample_line_channels
+from ..geometry.epipolar import LinePairs, line_pairs, sample_line_channels
 from ..geometry.triangulate import triangulate
 from ..geometry.two_view import TwoView
 from . import kernels
+from .band import coarse_search_band, depth_grids, invert_band, sample_alphas, search_band, widen
+from .points import at_distance, line_points, points_of_samples
 from .validity import depth_continuity, neighbour_consistency, neighbour_median
 
 logger = logging.getLogger(__name__)
@@ -54,46 +56,6 @@ def depth_range(tv: TwoView, margin: float = 2.0) -> tuple[float, float]:
             lo, hi = np.percentile(dist, [1, 99])
             return float(lo / margin), float(hi * margin)
     return 0.2 * baseline, float("inf")
-
-
-def sample_alphas(lp: LinePairs, tv: TwoView) -> tuple[np.ndarray, np.ndarray]:
-    """Angle from the baseline of every sample's ray, flat, for image 1 and image 2."""
-    return line_alphas(lp, tv.K1, np.eye(3), 1), line_alphas(lp, tv.K2, tv.R.T, 2)
-
-
-def search_band(lp: LinePairs, tv: TwoView, depths, slack: int, alphas: tuple[np.ndarray, np.ndarray] | None = None,
-                grid: tuple[np.ndarray, np.ndarray, tuple[float, float]] | None = None
-                ) -> tuple[np.ndarray, np.ndarray]:
-    """For each line-1 sample, the line-2 sample range holding points at the given depths.
-
-    ``depths`` is ``(dmin, dmax)``: distances from camera 1, scalars for the
-    whole image or (N1,) arrays, one range per line-1 sample. With ``grid``
-    ``(gmin, gmax, (sx, sy))``, a coarser level's (widened) depth grids and
-    the scale of image 1 to them, a sample whose grid cell holds a range
-    takes that one instead (:func:`coarse_search_band`). Returns ``lo, hi``
-    (N1,) int64 positions on line 2, relative to its start, widened by
-    ``slack`` samples (``hi < lo`` where the range is empty).
-    """
-    from ..geometry.kernels import depth_band
-
-    a1, a2 = alphas if alphas is not None else sample_alphas(lp, tv)
-    n1 = len(a1)
-    # Views, not copies: scalars are read through a zero stride.
-    dmin = np.broadcast_to(np.asarray(depths[0], np.float64), (n1,))
-    dmax = np.broadcast_to(np.asarray(depths[1], np.float64), (n1,))
-    if grid is None:
-        grid = (np.full((1, 1), np.inf, np.float32), np.full((1, 1), -np.inf, np.float32), (0.0, 0.0))
-    gmin, gmax, (sx, sy) = grid
-    start1, step1, _ = lp.side(1)
-    return depth_band(a1, lp.offset1, a2, lp.offset2, dmin, dmax, float(np.linalg.norm(tv.t)), int(slack),
-                      start1, step1, float(sx), float(sy), gmin, gmax)
-
-
-def invert_band(lo: np.ndarray, hi: np.ndarray, off1: np.ndarray, off2: np.ndarray):
-    """Band of line-1 positions for every line-2 sample, from the line-2 band of every line-1 sample."""
-    from ..geometry.kernels import invert_band as kernel
-
-    return kernel(np.ascontiguousarray(lo, np.int64), np.ascontiguousarray(hi, np.int64), off1, off2)
 
 
 def consistent(j12: np.ndarray, i21: np.ndarray, off1, off2, count2, tol: float) -> np.ndarray:
@@ -155,47 +117,6 @@ def coarse_level(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config) -
     except InputError:
         return None
     return CoarseLevel(dm, (sx1, sy1), c1.shape[:2])
-
-
-def depth_grids(uv: np.ndarray, dist: np.ndarray, shape: tuple[int, int], mask: np.ndarray | None = None,
-                grids: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Smallest and largest distance of the points in each pixel, (height, width) float32 each.
-
-    ``uv`` (N, 2) are COLMAP pixels of an image of ``shape``; only the points
-    in ``mask`` (default all) count; pixels without a point hold inf and -inf.
-    With ``grids``, the points are added to them (in place).
-    """
-    from ..geometry.kernels import rasterise_min_max
-
-    if grids is None:
-        grids = (np.full(shape, np.inf, np.float32), np.full(shape, -np.inf, np.float32))
-    mask = np.ones(len(uv), bool) if mask is None else np.ascontiguousarray(mask, bool)
-    rasterise_min_max(np.ascontiguousarray(uv, np.float64), np.ascontiguousarray(dist, np.float64), mask, *grids)
-    return grids
-
-
-def _widen(grids: tuple[np.ndarray, np.ndarray], radius: int) -> tuple[np.ndarray, np.ndarray]:
-    """Min and max depth grids, each cell taking the range of the cells within ``radius`` of it."""
-    gmin, gmax = grids
-    if radius > 0:
-        kernel = np.ones((2 * radius + 1, 2 * radius + 1), np.uint8)
-        gmin = cv2.erode(gmin, kernel, borderType=cv2.BORDER_REPLICATE)
-        gmax = cv2.dilate(gmax, kernel, borderType=cv2.BORDER_REPLICATE)
-    return gmin, gmax
-
-
-def coarse_search_band(lp: LinePairs, tv: TwoView, coarse: CoarseLevel, radius: int, depths: tuple[float, float],
-                       slack: int, alphas: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`search_band` with each line-1 sample's distance range from the coarse level's matches.
-
-    A sample's range is the smallest and largest distance the coarse level
-    found within ``radius`` coarse pixels of it (so an occlusion edge keeps
-    both sides, and an isolated mismatch only widens it); samples with no
-    coarse match nearby keep the global ``depths``.
-    """
-    dm = coarse.matches
-    gmin, gmax = _widen(depth_grids(dm.uv1, np.linalg.norm(dm.xyz, axis=1), coarse.shape), radius)
-    return search_band(lp, tv, depths, slack, alphas, (gmin, gmax, coarse.scale))
 
 
 def _per_sample_step(value: float, cfg: Config, longest: int) -> float:
@@ -319,39 +240,19 @@ def next_line(lp: LinePairs, step: float) -> np.ndarray:
     return out
 
 
-def _pair_geometry(lp: LinePairs, tv: TwoView) -> tuple:
-    """The point kernels' line geometry and cameras: ``start1, step1, off1, start2, step2, Kinv1, Kinv2, Rt, c2``."""
-    Rt = np.ascontiguousarray(tv.R.T)
-    start1, step1, off1 = lp.side(1)
-    start2, step2, _ = lp.side(2)
-    return (start1, step1, off1, start2, step2, np.linalg.inv(tv.K1), np.linalg.inv(tv.K2), Rt,
-            -Rt @ np.asarray(tv.t, np.float64))
-
-
-def _line_points(j, cost, max_cost: float, min_angle: float, lp: LinePairs, tv: TwoView, pairs: bool = True):
-    """:func:`kernels.line_matches_to_points` with this pair's line geometry and cameras (``min_angle`` radians)."""
-    return kernels.line_matches_to_points(j, cost, max_cost, *_pair_geometry(lp, tv), min_angle, pairs)
-
-
-def _sample_points(samples: np.ndarray, j, lp: LinePairs, tv: TwoView):
-    """:func:`_line_points` (no angle limit) of the listed samples: ``uv1, dist, valid``."""
-    line = np.searchsorted(lp.offset1, samples, side="right") - 1
-    return kernels.sample_points(samples, line, j, *_pair_geometry(lp, tv), 0.0)
-
-
 def _validated_points(j, cost, lp: LinePairs, tv: TwoView, shape: tuple[int, int], cfg: Config,
                       median: bool = False, pairs: bool = True):
     """Matched samples -> pixel pairs, points and the validity mask (S_p, then the 2-D check).
 
     Returns ``idx, line, uv1, uv2, X, dist, keep, med`` over the matched
-    samples (see :func:`kernels.line_matches_to_points`); ``med`` is None,
+    samples (see :func:`.points.line_matches_to_points`); ``med`` is None,
     or with ``median`` and the 2-D check on, the check's neighbour median of
     each distance (:func:`neighbour_median`). ``uv2`` and ``X`` are empty
     without ``pairs``, and where ``med`` replaces them.
     """
     v = cfg.validity
     median = median and v.neighbour_tol_px > 0
-    idx, line, uv1, uv2, X, dist, valid = _line_points(j, cost, v.max_cost, np.radians(v.min_tri_angle_deg), lp, tv,
+    idx, line, uv1, uv2, X, dist, valid = line_points(j, cost, v.max_cost, np.radians(v.min_tri_angle_deg), lp, tv,
                                                        pairs and not median)
     keep = depth_continuity(dist, line, v.sp_depth_jump, v.sp_min_run, mask=valid)
     med = None
@@ -366,15 +267,6 @@ def _validated_points(j, cost, lp: LinePairs, tv: TwoView, shape: tuple[int, int
         else:
             keep = neighbour_consistency(*args)
     return idx, line, uv1, uv2, X, dist, keep, med
-
-
-def _at_distance(uv1: np.ndarray, dist: np.ndarray, tv: TwoView):
-    """Points at ``dist`` along the rays of ``uv1`` and their partners, on the epipolar lines: ``X, uv2``."""
-    from ..geometry.kernels import points_at_distance
-
-    f64 = lambda a: np.ascontiguousarray(a, np.float64)  # noqa: E731
-    return points_at_distance(f64(np.linalg.inv(tv.K1)), f64(tv.K2), f64(tv.R), f64(np.ravel(tv.t)),
-                                      f64(uv1), f64(dist))
 
 
 def propagate(lp: LinePairs, tv: TwoView, I1, I2, j, idx, uv1, dist, keep, alphas, shape: tuple[int, int],
@@ -420,7 +312,7 @@ def propagate(lp: LinePairs, tv: TwoView, I1, I2, j, idx, uv1, dist, keep, alpha
         active = np.ones(shape, np.uint8)
     else:
         old_min, old_max, active = state
-        gmin, gmax = _widen(grids, d.propagate_radius)
+        gmin, gmax = widen(grids, d.propagate_radius)
         active = active | (gmin != old_min) | (gmax != old_max)
         # A match the validation dropped may be kept among its new neighbours.
         active |= cv2.dilate(_pixel_mask(uv1, ~keep, shape), kernel).astype(bool)
@@ -443,12 +335,12 @@ def propagate(lp: LinePairs, tv: TwoView, I1, I2, j, idx, uv1, dist, keep, alpha
         cand = cand[~hit]
         new[fi] = True
         # The new matches' points seed the next pass.
-        fuv1, fdist, fvalid = _sample_points(fi, jv, lp, tv)
+        fuv1, fdist, fvalid = points_of_samples(fi, jv, lp, tv)
         depth_grids(fuv1, fdist, shape, fvalid, grids)
         # Only pixels whose widened range just changed can match in the next
         # pass: a sample that failed with the same range fails again.
         active = cv2.dilate(_pixel_mask(fuv1, fvalid, shape), kernel)
-    return jv, new, (*_widen(grids, d.propagate_radius), active)
+    return jv, new, (*widen(grids, d.propagate_radius), active)
 
 
 def _pixel_mask(uv: np.ndarray, mask: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
@@ -603,7 +495,7 @@ def match_pair(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config, pro
     if med is not None:
         # The partner moves along its epipolar line to the depth of the 2-D median.
         t0 = time.perf_counter()
-        X, uv2 = _at_distance(uv1, med.take(ki), tv)
+        X, uv2 = at_distance(uv1, med.take(ki), tv)
         timings["validity"] += time.perf_counter() - t0
     else:
         uv2, X = uv2.take(ki, axis=0), X.take(ki, axis=0)
