@@ -8,7 +8,11 @@ from sefm_recon.geometry import kernels as gk
 from sefm_recon.geometry.epipolar import line_alphas, line_pairs, ray_angles, sample_line_channels
 from sefm_recon.matching import kernels as mk
 from sefm_recon.matching.band import depth_grids, invert_band, search_band, widen
+from sefm_recon.matching.fill import bridge_gaps, fill_from_band, fill_gaps
+from sefm_recon.matching.propagate import PropagateOptions, propagate_candidates
 from sefm_recon.matching.sefm import CoarseLevel
+from sefm_recon.matching.subpixel import Channels, SubpixelOptions, _local_slope, line_shear, refine_subpixel
+from sefm_recon.matching.zncc import zncc, zncc3, zncc3_sheared, zncc_search
 from sefm_recon.geometry.two_view import TwoView
 
 from .conftest import rot_y
@@ -245,8 +249,8 @@ def test_three_zncc_in_one_pass_equal_three_single_ones(jpos):
     rng = np.random.default_rng(1)
     a = rng.normal(size=(60, 3)).astype(np.float32)
     b = rng.normal(size=(60, 3)).astype(np.float32)
-    got = mk._zncc3(a, 25, b, jpos, 5)
-    want = [mk._zncc(a, 25, b, jpos + d, 5) for d in (-1.0, 0.0, 1.0)]
+    got = zncc3(a, 25, b, jpos, 5)
+    want = [zncc(a, 25, b, jpos + d, 5) for d in (-1.0, 0.0, 1.0)]
     np.testing.assert_allclose(got, want, atol=1e-9)
 
 
@@ -271,7 +275,7 @@ def test_zncc_near_line_ends_uses_the_cut_window(i, jpos, s_lo, s_hi):
     rng = np.random.default_rng(3)
     a = rng.normal(size=(60, 3)).astype(np.float32)
     b = rng.normal(size=(60, 3)).astype(np.float32)
-    got = mk._zncc3(a, i, b, jpos, 5)
+    got = zncc3(a, i, b, jpos, 5)
     want = [_zncc_ref(a, i, b, jpos + d, s_lo, s_hi) for d in (-1.0, 0.0, 1.0)]
     np.testing.assert_allclose(got, want, atol=1e-6)
 
@@ -281,10 +285,10 @@ def test_zncc_window_too_short_near_a_line_end_is_rejected():
     a = rng.normal(size=(60, 2)).astype(np.float32)
     b = rng.normal(size=(60, 2)).astype(np.float32)
     # fewer than half + 1 = 6 samples fit: i = 59 leaves offsets -5..0, but line 2 ends at jpos + 0
-    assert mk._zncc3(a, 59, b, 59.0, 5)[1] == -2.0
-    assert mk._zncc(a, 59, b, 59.0, 5) == -2.0  # single ZNCC (search, fill) needs the whole window
-    assert mk._zncc(a, 0, b, 30.0, 5) == -2.0
-    assert mk._zncc(a, 30, b, 30.0, 5) > -2.0
+    assert zncc3(a, 59, b, 59.0, 5)[1] == -2.0
+    assert zncc(a, 59, b, 59.0, 5) == -2.0  # single ZNCC (search, fill) needs the whole window
+    assert zncc(a, 0, b, 30.0, 5) == -2.0
+    assert zncc(a, 30, b, 30.0, 5) > -2.0
 
 
 def test_refine_subpixel_refines_and_scores_samples_at_the_line_ends():
@@ -297,9 +301,9 @@ def test_refine_subpixel_refines_and_scores_samples_at_the_line_ends():
     off1 = np.array([0, n], np.int64)
     off2 = np.array([0, n + 6], np.int64)
     j = np.arange(n, dtype=float) + 3.0  # the DP's whole-sample answer
-    out, zncc = mk.refine_subpixel(a, off1, b, off2, j, 7, 1.0)
+    out, z = refine_subpixel(a, off1, b, off2, j, SubpixelOptions(7, 1.0), Channels())
     for i in (0, 1, n - 2):  # the full 15-sample window does not fit at any of these
-        assert zncc[i] > 0.95
+        assert z[i] > 0.95
         assert abs(out[i] - (i + 3.4)) < 0.15  # from 0.4 off (the parabola is not exact)
     assert abs(out[40] - 43.4) < 0.05
 
@@ -307,20 +311,21 @@ def test_refine_subpixel_refines_and_scores_samples_at_the_line_ends():
     rng = np.random.default_rng(0)
     wide_a = np.concatenate([rng.normal(size=(n, 1)), a, rng.normal(size=(n, 3))], 1).astype(np.float32)
     wide_b = np.concatenate([rng.normal(size=(n + 6, 1)), b, rng.normal(size=(n + 6, 3))], 1).astype(np.float32)
-    got = mk.refine_subpixel(wide_a, off1, wide_b, off2, j, 7, 1.0, 6, 0.1, 1, 3)
-    want = mk.refine_subpixel(a, off1, b, off2, j, 7, 1.0, 6, 0.1)
+    got = refine_subpixel(wide_a, off1, wide_b, off2, j, SubpixelOptions(7, 1.0, 6, 0.1), Channels(1, 3))
+    want = refine_subpixel(a, off1, b, off2, j, SubpixelOptions(7, 1.0, 6, 0.1), Channels())
     np.testing.assert_array_equal(got[0], want[0])
     np.testing.assert_array_equal(got[1], want[1])
-    assert not np.array_equal(mk.refine_subpixel(wide_a, off1, wide_b, off2, j, 7, 1.0)[1], want[1])
+    every = refine_subpixel(wide_a, off1, wide_b, off2, j, SubpixelOptions(7, 1.0), Channels())
+    assert not np.array_equal(every[1], want[1])
 
 
 def test_local_slope_of_the_partners():
     j = np.array([10.0, 11.5, np.nan, 14.5, 16.0, 17.5, np.nan, np.nan])
-    assert mk._local_slope(j, 3, 8, 2) == pytest.approx(1.5)  # j[1], j[5]: (17.5 - 11.5) / 4
-    assert mk._local_slope(j, 5, 8, 2) == pytest.approx(1.5)  # nothing at 7: the nearest, j[5] itself
-    assert mk._local_slope(np.full(5, np.nan), 2, 5, 2) == 1.0
-    assert mk._local_slope(np.array([0.0, 5.0, 10.0]), 1, 3, 1) == 2.0  # clipped
-    assert mk._local_slope(np.array([5.0, 5.0, 5.0]), 1, 3, 1) == 0.5
+    assert _local_slope(j, 3, 8, 2) == pytest.approx(1.5)  # j[1], j[5]: (17.5 - 11.5) / 4
+    assert _local_slope(j, 5, 8, 2) == pytest.approx(1.5)  # nothing at 7: the nearest, j[5] itself
+    assert _local_slope(np.full(5, np.nan), 2, 5, 2) == 1.0
+    assert _local_slope(np.array([0.0, 5.0, 10.0]), 1, 3, 1) == 2.0  # clipped
+    assert _local_slope(np.array([5.0, 5.0, 5.0]), 1, 3, 1) == 0.5
 
 
 def test_stretched_window_finds_the_partner_on_a_slanted_surface():
@@ -335,10 +340,10 @@ def test_stretched_window_finds_the_partner_on_a_slanted_surface():
     src = (tj - 4.3) / 1.5
     b = np.stack([np.interp(src, t, base[:, c]) for c in range(2)], 1).astype(np.float32)
     i, jpos = 50, 1.5 * 50 + 4.3
-    unstretched = mk._zncc3_sheared(a, i, b, 60.0, 7, 1.0, 0.0, 0, a.shape[1])
-    assert unstretched == pytest.approx(mk._zncc3(a, i, b, 60.0, 7), abs=1e-9)
-    plain = mk._zncc3(a, i, b, jpos, 7)[1]
-    stretched = mk._zncc3_sheared(a, i, b, jpos, 7, 1.5, 0.0, 0, a.shape[1])[1]
+    unstretched = zncc3_sheared(a, i, b, 60.0, 7, 1.0, 0.0, 0, a.shape[1])
+    assert unstretched == pytest.approx(zncc3(a, i, b, 60.0, 7), abs=1e-9)
+    plain = zncc3(a, i, b, jpos, 7)[1]
+    stretched = zncc3_sheared(a, i, b, jpos, 7, 1.5, 0.0, 0, a.shape[1])[1]
     assert stretched > 0.99 and stretched > plain + 0.05
     # refinement from the whole-sample answer, with and without the stretch
     off1 = np.array([0, n], np.int64)
@@ -346,8 +351,8 @@ def test_stretched_window_finds_the_partner_on_a_slanted_surface():
     truth = 1.5 * t + 4.3
     j = np.where((t > 10) & (t < n - 10), np.rint(truth), np.nan)
     inner = np.isfinite(j)
-    got, _ = mk.refine_subpixel(a, off1, b, off2, j, 7, 1.0, 6, 0.1)
-    plain, _ = mk.refine_subpixel(a, off1, b, off2, j, 7, 1.0, 0, 0.1)
+    got, _ = refine_subpixel(a, off1, b, off2, j, SubpixelOptions(7, 1.0, 6, 0.1), Channels())
+    plain, _ = refine_subpixel(a, off1, b, off2, j, SubpixelOptions(7, 1.0, 0, 0.1), Channels())
     err = np.abs(got[inner] - truth[inner])
     assert np.median(err) < 0.05 and err.mean() < 0.2 * np.abs(plain[inner] - truth[inner]).mean()
 
@@ -373,15 +378,16 @@ def test_sheared_window_finds_the_partner_where_depth_changes_across_lines():
     j = np.where((t > 12) & (t < n - 12), np.rint(truth), np.nan)
     inner = np.isfinite(j)
     shear = np.where(inner, 1.2, 0.0).astype(np.float32)
-    got, z = mk.refine_subpixel(a, off, b, off, j, 7, 1.0, 6, 0.1, 0, -1, shear, -1, 1, 0.1)
-    plain, zp = mk.refine_subpixel(a, off, b, off, j, 7, 1.0, 6, 0.1)
+    got, z = refine_subpixel(a, off, b, off, j, SubpixelOptions(7, 1.0, 6, 0.1, 0.1), Channels(0, -1, -1, 1),
+                             shear)
+    plain, zp = refine_subpixel(a, off, b, off, j, SubpixelOptions(7, 1.0, 6, 0.1), Channels())
     err = np.abs(got[inner] - truth[inner])
     assert np.median(err) < 0.05 and err.mean() < 0.5 * np.abs(plain[inner] - truth[inner]).mean()
     assert np.median(z[inner]) > 0.95 and np.median(z[inner]) > np.median(zp[inner]) + 0.1  # at the whole-sample j
     # a shear under min_shear takes the unmoved window: the same answer
     small = np.where(inner, 0.05, 0.0).astype(np.float32)
-    np.testing.assert_array_equal(mk.refine_subpixel(a, off, b, off, j, 7, 1.0, 6, 0.1, 0, -1, small, -1, 1, 0.1)[0],
-                                  plain)
+    moved = refine_subpixel(a, off, b, off, j, SubpixelOptions(7, 1.0, 6, 0.1, 0.1), Channels(0, -1, -1, 1), small)
+    np.testing.assert_array_equal(moved[0], plain)
 
 
 def test_line_shear_reads_how_far_matches_move_from_one_line_to_the_next():
@@ -396,14 +402,14 @@ def test_line_shear_reads_how_far_matches_move_from_one_line_to_the_next():
     j = np.concatenate([(np.arange(n) + 2 * l) + 0.7 * l - 4 - 3 * l for l in range(L)])
     j[(j < 0) | (j > n + 9)] = np.nan
     nxt = np.array([1, 2, 3, 4, -1], np.int64)
-    h = mk.line_shear(j, a1, off1, a2, off2, nxt, 4, 2.0)
+    h = line_shear(j, a1, off1, a2, off2, nxt, 4, 2.0)
     ok = np.isfinite(j)
     np.testing.assert_allclose(h[ok], 0.7, atol=1e-6)
     assert np.all(h[~ok] == 0)
     # shears over max_shear are across a depth edge: left out (0 where nothing is left)
-    assert np.all(mk.line_shear(j, a1, off1, a2, off2, nxt, 4, 0.69) == 0)
+    assert np.all(line_shear(j, a1, off1, a2, off2, nxt, 4, 0.69) == 0)
     # no neighbour half-plane: no shear
-    assert np.all(mk.line_shear(j, a1, off1, a2, off2, np.full(L, -1, np.int64), 4, 5.0) == 0)
+    assert np.all(line_shear(j, a1, off1, a2, off2, np.full(L, -1, np.int64), 4, 5.0) == 0)
 
 
 def test_shifted_window_matches_a_sample_next_to_a_depth_edge():
@@ -419,11 +425,11 @@ def test_shifted_window_matches_a_sample_next_to_a_depth_edge():
     b[52:56] = rng.normal(size=(4, 3))  # background seen only in view 2
     b[56:116] = bg[50:110]  # b[k] = bg[k - 6]
     i = 51  # background, one sample from the edge: its partner is 57
-    centred, _ = mk._zncc_search(a, i, b, 54.0, 7, 3, 0.98, 0)
-    shifted, pos = mk._zncc_search(a, i, b, 54.0, 7, 3, 0.98, 3)
+    centred, _ = zncc_search(a, i, b, 54.0, 7, 3, 0.98, 0)
+    shifted, pos = zncc_search(a, i, b, 54.0, 7, 3, 0.98, 3)
     assert centred < 0.98 < shifted and pos == pytest.approx(57.0, abs=0.5)
     # inside the background, the centred window already does it (and is kept)
-    z, pos = mk._zncc_search(a, 80, b, 83.0, 7, 3, 0.98, 3)
+    z, pos = zncc_search(a, 80, b, 83.0, 7, 3, 0.98, 3)
     assert z > 0.99 and pos == pytest.approx(86.0, abs=0.5)
 
 
@@ -440,14 +446,14 @@ def test_shifted_window_does_not_cross_an_intensity_step():
     i = 49  # occluded in view 2
     # moved 3 samples into the foreground (windows of 5), the window finds the
     # foreground's partner: the hidden sample would take the foreground's depth
-    centred, _ = mk._zncc_search(a, i, b, 40.0, 7, 2, 0.98, 0)
-    z, pos = mk._zncc_search(a, i, b, 40.0, 7, 2, 0.98, 3)
+    centred, _ = zncc_search(a, i, b, 40.0, 7, 2, 0.98, 0)
+    z, pos = zncc_search(a, i, b, 40.0, 7, 2, 0.98, 3)
     assert centred < 0.98 < z and pos == pytest.approx(43.0, abs=0.5)
     # with the step limit it is not moved across the edge, and stays unmatched
-    z, _ = mk._zncc_search(a, i, b, 40.0, 7, 2, 0.98, 3, 4.0)
+    z, _ = zncc_search(a, i, b, 40.0, 7, 2, 0.98, 3, 4.0)
     assert z < 0.98
     # a foreground sample next to the edge still moves its window into the foreground
-    z, pos = mk._zncc_search(a, 50, b, 40.0, 7, 2, 0.98, 3, 4.0)
+    z, pos = zncc_search(a, 50, b, 40.0, 7, 2, 0.98, 3, 4.0)
     assert z > 0.98 and pos == pytest.approx(44.0, abs=0.5)
 
 
@@ -466,18 +472,18 @@ def test_gap_filling_leaves_depth_edges_alone():
     j[10], j[30] = 14.0, 16.0
     j[60], j[80] = 64.0, 84.0
     fold = np.arange(11, 30)
-    _, ffree = mk.fill_gaps(a, off, b, off2, j, 64, 3, 3, 0.9)
+    _, ffree = fill_gaps(a, off, b, off2, j, 64, 3, 3, 0.9)
     assert ffree[fold].any()  # unlimited, the fold's samples near its ends find partners
-    out, filled = mk.fill_gaps(a, off, b, off2, j, 64, 3, 3, 0.9, 3.0)
+    out, filled = fill_gaps(a, off, b, off2, j, 64, 3, 3, 0.9, 3.0)
     assert not filled[fold].any()
     assert filled[61:80].all()
     np.testing.assert_array_equal(np.rint(out[61:80]), np.arange(61, 80) + 4.0)
     # the band fill skips the fold's samples too (when asked), and fills the others
     lo = np.arange(n, dtype=np.int64) + 1
     hi = lo + 8
-    _, gfilled = mk.fill_from_band(a, off, b, off2, j, lo, hi, 12, 3, 0.9, 3.0)
+    _, gfilled = fill_from_band(a, off, b, off2, j, lo, hi, 12, 3, 0.9, 3.0)
     assert not gfilled[fold].any() and gfilled[40:55].all()
-    _, ufilled = mk.fill_from_band(a, off, b, off2, j, lo, hi, 12, 3, 0.9)
+    _, ufilled = fill_from_band(a, off, b, off2, j, lo, hi, 12, 3, 0.9)
     assert ufilled[fold].all()
 
 
@@ -488,7 +494,7 @@ def test_fill_from_band_finds_the_shift_inside_a_narrow_band():
     lo = np.arange(n, dtype=np.int64) + 1
     hi = lo + 8
     hi[:20] = lo[:20] + 40  # too wide: left alone
-    out, filled = mk.fill_from_band(a, off, b, off2, j, lo, hi, 12, 3, 0.9)
+    out, filled = fill_from_band(a, off, b, off2, j, lo, hi, 12, 3, 0.9)
     inner = np.arange(20, n - 10)
     assert filled[inner].all() and not filled[:20].any()
     # the best whole shift, then a parabola (white noise has no smooth peak: within half a sample)
@@ -514,10 +520,10 @@ def _propagation_scene(seed, ratio):
 
 
 def _propagate_pass(I1, off1, I2, off2, j, *args):
-    """:func:`mk.propagate_candidates` over every unmatched sample: the filled copy of ``j`` and its mask."""
+    """:func:`propagate_candidates` over every unmatched sample: the filled copy of ``j`` and its mask."""
     out = j.copy()
     cand = np.flatnonzero(np.isnan(j))
-    hit = mk.propagate_candidates(I1, off1, I2, off2, out, cand, np.searchsorted(cand, off1), *args)
+    hit = propagate_candidates(I1, off1, I2, off2, out, cand, np.searchsorted(cand, off1), *args)
     filled = np.zeros(len(j), bool)
     filled[cand[hit]] = True
     return out, filled
@@ -532,25 +538,26 @@ def test_propagation_pass_equals_bounds_then_band_then_fill():
     start1, step1, _ = lp.side(1)
     everywhere = np.ones((SIZE[1], SIZE[0]), np.uint8)
     got, filled = _propagate_pass(I1, lp.offset1, I2, lp.offset2, j, start1, step1, *alphas, wmin, wmax,
-                                    float(np.linalg.norm(t)), 1, 6, 3, 0.5, 0, everywhere)
+                                  float(np.linalg.norm(t)), everywhere, PropagateOptions(1, 6, 3, 0.5, 0))
     depths = _grid_bounds(lp, wmin, wmax, (1.0, 1.0), (0.0, np.inf))
     lo, hi = search_band(lp, tv, depths, 1, alphas)
     lo[~np.isfinite(depths[1])], hi[~np.isfinite(depths[1])] = 0, -1  # no match nearby: no band
-    want, wfilled = mk.fill_from_band(I1, lp.offset1, I2, lp.offset2, j, lo, hi, 6, 3, 0.5)
+    want, wfilled = fill_from_band(I1, lp.offset1, I2, lp.offset2, j, lo, hi, 6, 3, 0.5)
     assert wfilled.sum() > 1000
     np.testing.assert_array_equal(filled, wfilled)
     np.testing.assert_array_equal(got, want)
     # only samples on active pixels are tried; they get the same partners
     active = (rng.random((SIZE[1], SIZE[0])) < 0.5).astype(np.uint8)
     part, pfilled = _propagate_pass(I1, lp.offset1, I2, lp.offset2, j, start1, step1, *alphas, wmin, wmax,
-                                      float(np.linalg.norm(t)), 1, 6, 3, 0.5, 0, active)
+                                    float(np.linalg.norm(t)), active, PropagateOptions(1, 6, 3, 0.5, 0))
     px = np.floor(lp.all_points1()).astype(int)
     on = active[np.clip(px[:, 1], 0, SIZE[1] - 1), np.clip(px[:, 0], 0, SIZE[0] - 1)] == 1
     np.testing.assert_array_equal(pfilled, filled & on)
     np.testing.assert_array_equal(part[pfilled], got[pfilled])
     # the pass widens the raw grids itself, for the samples it tries: the same partners
     raw, rfilled = _propagate_pass(I1, lp.offset1, I2, lp.offset2, j, start1, step1, *alphas, gmin, gmax,
-                                     float(np.linalg.norm(t)), 1, 6, 3, 0.5, 0, everywhere, np.inf, -1, 0.0, 1)
+                                   float(np.linalg.norm(t)), everywhere,
+                                   PropagateOptions(1, 6, 3, 0.5, 0, np.inf, -1, 0.0, 1))
     np.testing.assert_array_equal(rfilled, filled)
     np.testing.assert_array_equal(raw, got)
 
@@ -582,15 +589,15 @@ def test_propagation_next_to_a_depth_edge_searches_each_surface_in_turn():
     j = np.full(len(I1), np.nan)
     start1, step1, _ = lp.side(1)
     everywhere = np.ones((SIZE[1], SIZE[0]), np.uint8)
-    args = (I1, lp.offset1, I2, lp.offset2, j, start1, step1, *alphas, gmin, gmax, float(np.linalg.norm(t)), 1, 6, 3,
-            0.5, 0, everywhere, np.inf)
+    args = (I1, lp.offset1, I2, lp.offset2, j, start1, step1, *alphas, gmin, gmax, float(np.linalg.norm(t)), everywhere)
+    split = lambda *slack_margin: PropagateOptions(1, 6, 3, 0.5, 0, np.inf, *slack_margin)  # noqa: E731
     both = _grid_bounds(lp, gmin, gmax, (1.0, 1.0), (0.0, np.inf))
     lo, hi = search_band(lp, tv, both, 1, alphas)
     wide = np.isfinite(both[1]) & (hi - lo + 1 > 6)
     assert wide.sum() > 0.5 * np.isfinite(both[1]).sum()
-    plain, off = _propagate_pass(*args, -1)
+    plain, off = _propagate_pass(*args, split(-1))
     assert not off[wide].any()  # too wide: left alone
-    got, on = _propagate_pass(*args, 1, 0.0)
+    got, on = _propagate_pass(*args, split(1, 0.0))
     np.testing.assert_array_equal(on[~wide], off[~wide])  # narrow bands: as before
     np.testing.assert_array_equal(got[~wide], plain[~wide])
     on &= wide
@@ -606,7 +613,7 @@ def test_propagation_next_to_a_depth_edge_searches_each_surface_in_turn():
             assert np.all((in_near | inside)[on])
             assert in_near.sum() > 100 and inside.sum() > 100
     # a margin between the two surfaces' correlations keeps only the clearer samples
-    _, strict = _propagate_pass(*args, 1, 0.2)
+    _, strict = _propagate_pass(*args, split(1, 0.2))
     strict &= wide
     assert 0 < strict.sum() < on.sum() and not (strict & ~on).any()
 
@@ -644,7 +651,7 @@ def test_depth_grids_add_points_in_place_as_if_all_at_once():
 
 
 def test_next_line_skips_missing_half_planes():
-    from sefm_recon.matching.sefm import next_line
+    from sefm_recon.matching.subpixel import next_line
 
     class Lines:  # the two fields next_line reads
         phi_step = 0.01
@@ -668,23 +675,23 @@ def test_bridge_gaps_interpolates_short_gaps_inside_a_surface_only():
     j[10:12] = np.nan  # a gap of 2: bridged
     j[20:25] = np.nan  # 5: too long
     off = np.array([0, 40], np.int64)
-    out, bridged = mk.bridge_gaps(j, off, 4, 0.5, 2.0, 0.5)
+    out, bridged = bridge_gaps(j, off, 4, 0.5, 2.0, 0.5)
     np.testing.assert_array_equal(np.flatnonzero(bridged), [10, 11])
     np.testing.assert_allclose(out[10:12], 5.0 + 1.2 * k[10:12])
     assert np.isnan(out[20:25]).all()
     # a depth step in the gap (the partners jump, or bend past the tolerance on one side): left alone
     step = 5.0 + np.where(k < 11, k, k + 6.0)
     step[10:12] = np.nan
-    assert not mk.bridge_gaps(step, off, 4, 0.5, 2.0, 0.5)[1].any()
+    assert not bridge_gaps(step, off, 4, 0.5, 2.0, 0.5)[1].any()
     bend = 5.0 + np.where(k < 11, k, 11 + 1.9 * (k - 11))
     bend[11:13] = np.nan
-    assert not mk.bridge_gaps(bend, off, 4, 0.5, 2.0, 0.5)[1].any()
-    assert mk.bridge_gaps(bend, off, 4, 0.5, 2.0, 1.0)[1].sum() == 2
+    assert not bridge_gaps(bend, off, 4, 0.5, 2.0, 0.5)[1].any()
+    assert bridge_gaps(bend, off, 4, 0.5, 2.0, 1.0)[1].sum() == 2
     # nothing matched beyond an end: not judged, not bridged; gaps do not run across lines
     edge = 5.0 + k
     edge[1:3] = np.nan
     edge[0] = 5.0
-    assert not mk.bridge_gaps(edge[:4], np.array([0, 4], np.int64), 4, 0.5, 2.0, 0.5)[1].any()
+    assert not bridge_gaps(edge[:4], np.array([0, 4], np.int64), 4, 0.5, 2.0, 0.5)[1].any()
     two = 5.0 + k
     two[18:22] = np.nan
-    assert not mk.bridge_gaps(two, np.array([0, 20, 40], np.int64), 4, 0.5, 2.0, 0.5)[1].any()
+    assert not bridge_gaps(two, np.array([0, 20, 40], np.int64), 4, 0.5, 2.0, 0.5)[1].any()

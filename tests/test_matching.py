@@ -164,15 +164,15 @@ def test_jump_threshold_shrinks_with_the_photo_size_and_coarse_levels_keep_it(mo
 
 
 def test_refinement_window_keeps_the_centre_line_and_its_nearest_neighbours():
-    from sefm_recon.matching.sefm import _inner_channels
+    from sefm_recon.matching.subpixel import inner_channels
 
     # two neighbours on each side, two colour channels: columns are (line offset, channel)
     I = np.array([[10 * o + c for o in range(-2, 3) for c in range(2)]], np.float32)
-    c0, c1 = _inner_channels(I, 2, 1)
+    c0, c1 = inner_channels(I, 2, 1)
     np.testing.assert_array_equal(I[:, c0:c1], [[-10, -9, 0, 1, 10, 11]])
-    c0, c1 = _inner_channels(I, 2, 0)
+    c0, c1 = inner_channels(I, 2, 0)
     np.testing.assert_array_equal(I[:, c0:c1], [[0, 1]])
-    assert _inner_channels(I, 2, 2) == _inner_channels(I, 2, 5) == (0, 10)
+    assert inner_channels(I, 2, 2) == inner_channels(I, 2, 5) == (0, 10)
 
 
 def test_prepared_image_equals_the_whole_image_conversion():

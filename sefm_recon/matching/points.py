@@ -70,7 +70,7 @@ def pair_geometry(lp: LinePairs, tv: TwoView) -> PairGeometry:
 
 @njit(inline="always")
 def _sample_pair(l, k, jj, geo, cos_max):
-    """Sample ``k`` of line ``l`` and its partner ``jj``: the :class:`SamplePair` (``cos_max``: of the smallest angle)."""
+    """Sample ``k`` of line ``l`` and its partner ``jj``: the :class:`SamplePair` (``cos_max``: of the least angle)."""
     x1 = geo.start1[l, 0] + k * geo.step1[l, 0]
     y1 = geo.start1[l, 1] + k * geo.step1[l, 1]
     x2 = geo.start2[l, 0] + jj * geo.step2[l, 0]
@@ -168,7 +168,7 @@ def line_points(j: np.ndarray, cost: np.ndarray, max_cost: float, min_angle: flo
 
 
 def points_of_samples(samples: np.ndarray, j: np.ndarray, lp: LinePairs, tv: TwoView):
-    """:func:`line_points` (no angle limit) of the listed samples (M,): ``uv1`` (M, 2), ``dist`` (M,), ``valid`` (M,)."""
+    """:func:`line_points` (no angle limit) of the listed samples (M,): ``uv1`` (M, 2), ``dist``, ``valid`` (M,)."""
     line = np.searchsorted(lp.offset1, samples, side="right") - 1
     return sample_points(samples, line, j, pair_geometry(lp, tv), 0.0)
 

@@ -21,8 +21,11 @@ from ..geometry.epipolar import LinePairs, line_pairs, sample_line_channels
 from ..geometry.triangulate import triangulate
 from ..geometry.two_view import TwoView
 from . import kernels
-from .band import coarse_search_band, depth_grids, invert_band, sample_alphas, search_band, widen
-from .points import at_distance, line_points, points_of_samples
+from .band import coarse_search_band, invert_band, sample_alphas, search_band
+from .fill import bridge_gaps, fill_from_band, fill_gaps
+from .points import at_distance, line_points
+from .propagate import propagate
+from .subpixel import refine
 from .validity import depth_continuity, neighbour_consistency, neighbour_median
 
 logger = logging.getLogger(__name__)
@@ -212,34 +215,6 @@ def _prepare(image: np.ndarray, sigma: float, color: bool) -> np.ndarray:
     return img
 
 
-def _inner_channels(I: np.ndarray, neighbours: int, keep: int) -> tuple[int, int]:
-    """Columns ``c0:c1`` of the centre line and its ``keep`` nearest neighbour lines on each side.
-
-    ``I`` is (N, (2 neighbours + 1) C), neighbour-major (:func:`sample_line_channels`).
-    """
-    if keep >= neighbours:
-        return 0, I.shape[1]
-    c = I.shape[1] // (2 * neighbours + 1)
-    return (neighbours - keep) * c, (neighbours + keep + 1) * c
-
-
-def next_line(lp: LinePairs, step: float) -> np.ndarray:
-    """(L,) int64: the line pair whose half-plane is ``step`` line steps past each one's (-1 if none).
-
-    Line pairs are ordered by half-plane angle, but lines that cross only one
-    image are left out, so the neighbour half-plane is not always the next pair.
-    """
-    L = len(lp)
-    out = np.full(L, -1, np.int64)
-    want = step * lp.phi_step
-    for shift in (1, -1):
-        m = (np.arange(L) + shift) % L
-        d = (lp.phi[m] - lp.phi + np.pi) % (2 * np.pi) - np.pi
-        ok = (np.abs(d - want) <= 0.01 * abs(want)) & (m != np.arange(L))
-        out[ok] = m[ok]
-    return out
-
-
 def _validated_points(j, cost, lp: LinePairs, tv: TwoView, shape: tuple[int, int], cfg: Config,
                       median: bool = False, pairs: bool = True):
     """Matched samples -> pixel pairs, points and the validity mask (S_p, then the 2-D check).
@@ -267,89 +242,6 @@ def _validated_points(j, cost, lp: LinePairs, tv: TwoView, shape: tuple[int, int
         else:
             keep = neighbour_consistency(*args)
     return idx, line, uv1, uv2, X, dist, keep, med
-
-
-def propagate(lp: LinePairs, tv: TwoView, I1, I2, j, idx, uv1, dist, keep, alphas, shape: tuple[int, int],
-              cfg: Config, max_step: float = np.inf, shift: int | None = None, state=None):
-    """Grow the valid matches into their unmatched neighbours (2-D, across line pairs).
-
-    Every sample without a valid match gets the depth range of the matches
-    within ``dense.propagate_radius`` pixels of it; where that range is at
-    most ``dense.propagate_width`` samples of line 2 wide, the partner is its
-    best ZNCC at ``dense.propagate_min_zncc`` or more (as the coarse-band
-    fill; where the centred window fails, windows moved
-    ``shift`` samples (default ``dense.propagate_window_shift``, see
-    :func:`window_shift`) to either side are tried, for
-    samples next to a depth edge, but not across an intensity step over
-    ``max_step``: :func:`shift_max_step`). Where the range is wider (the
-    neighbours lie on two surfaces), its two ends are searched in turn
-    (``dense.propagate_split_*``). Scanline DP leaves gaps where one line
-    alone was ambiguous; the lines beside it often matched there. Each of
-    the ``dense.propagate_passes`` passes grows from the valid matches and
-    the previous passes' new ones; the caller validates the result.
-
-    The validation drops some matches, often wrong ones next to a depth edge
-    that the first validation kept (their neighbours were missing then);
-    their depths widened their neighbours' ranges past ``propagate_width``.
-    So the caller runs ``dense.propagate_rounds`` rounds, each after a
-    validation, passing the ``state`` a round returns to the next: that round
-    tries only the samples whose range changed and those the validation
-    dropped (a sample that failed with the same range fails again).
-    Returns the new ``j`` (invalid matches dropped, new ones added), the
-    mask of new ones and the state.
-    """
-    d = cfg.dense
-    shift = d.propagate_window_shift if shift is None else shift
-    grids = depth_grids(uv1, dist, shape, keep)
-    valid = np.zeros(len(j), bool)
-    valid[idx[keep]] = True
-    jv = np.where(valid, j, np.nan)  # one pass; a NaN fill and a scatter cost 5x more here
-    new = np.zeros(len(j), bool)
-    start1, step1, _ = lp.side(1)
-    baseline = float(np.linalg.norm(tv.t))
-    kernel = np.ones((2 * d.propagate_radius + 1,) * 2, np.uint8)
-    if state is None:
-        active = np.ones(shape, np.uint8)
-    else:
-        old_min, old_max, active = state
-        gmin, gmax = widen(grids, d.propagate_radius)
-        active = active | (gmin != old_min) | (gmax != old_max)
-        # A match the validation dropped may be kept among its new neighbours.
-        active |= cv2.dilate(_pixel_mask(uv1, ~keep, shape), kernel).astype(bool)
-        active = active.astype(np.uint8)
-        del old_min, old_max
-    # The unmatched samples, listed once: each pass tries only these (in place in jv).
-    cand = np.flatnonzero(np.isnan(jv))
-    for _ in range(d.propagate_passes):
-        if not active.any():
-            break
-        # One sample of slack: the neighbours' depths are fine-level ones.
-        hit = kernels.propagate_candidates(I1, lp.offset1, I2, lp.offset2, jv, cand, np.searchsorted(cand, lp.offset1),
-                                           start1, step1, *alphas, *grids, baseline, 1, d.propagate_width,
-                                           d.fill_half_window, d.propagate_min_zncc, shift, active, max_step,
-                                           d.propagate_split_slack, d.propagate_split_margin, d.propagate_radius)
-        if not hit.any():
-            active = np.zeros(shape, np.uint8)
-            break
-        fi = cand[hit]
-        cand = cand[~hit]
-        new[fi] = True
-        # The new matches' points seed the next pass.
-        fuv1, fdist, fvalid = points_of_samples(fi, jv, lp, tv)
-        depth_grids(fuv1, fdist, shape, fvalid, grids)
-        # Only pixels whose widened range just changed can match in the next
-        # pass: a sample that failed with the same range fails again.
-        active = cv2.dilate(_pixel_mask(fuv1, fvalid, shape), kernel)
-    return jv, new, (*widen(grids, d.propagate_radius), active)
-
-
-def _pixel_mask(uv: np.ndarray, mask: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
-    """(height, width) uint8, 1 at the pixels ``floor(uv)`` of the masked points."""
-    out = np.zeros(shape, np.uint8)
-    ij = np.floor(uv[mask]).astype(np.int64)
-    ok = (ij[:, 0] >= 0) & (ij[:, 0] < shape[1]) & (ij[:, 1] >= 0) & (ij[:, 1] < shape[0])
-    out[ij[ok, 1], ij[ok, 0]] = 1
-    return out
 
 
 def match_pair(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config, progress: bool = False) -> DenseMatches:
@@ -415,30 +307,20 @@ def match_pair(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config, pro
         del lo21, hi21, i21
     max_scale = d.fill_max_scale if d.fill_max_scale > 0 else np.inf
     if cfg.dense.fill_max_gap > 0:
-        j, filled = kernels.fill_gaps(I1, off1, I2, off2, j, cfg.dense.fill_max_gap, cfg.dense.fill_radius,
-                                      cfg.dense.fill_half_window, cfg.dense.fill_min_zncc, max_scale)
+        j, filled = fill_gaps(I1, off1, I2, off2, j, cfg.dense.fill_max_gap, cfg.dense.fill_radius,
+                              cfg.dense.fill_half_window, cfg.dense.fill_min_zncc, max_scale)
         cost[filled] = 0.0
     if coarse is not None and cfg.pyramid.fill_width > 0:
         # The band fill judges a gap by the matches around it only where they
         # were checked both ways: single-direction DP matches fold at wrong
         # matches too (at 2000 px the test then cost 0.009 coverage at 1 px).
-        j, filled = kernels.fill_from_band(I1, off1, I2, off2, j, lo, hi, cfg.pyramid.fill_width,
-                                           cfg.dense.fill_half_window, cfg.dense.fill_min_zncc,
-                                           max_scale if both else np.inf)
+        j, filled = fill_from_band(I1, off1, I2, off2, j, lo, hi, cfg.pyramid.fill_width,
+                                   cfg.dense.fill_half_window, cfg.dense.fill_min_zncc,
+                                   max_scale if both else np.inf)
         cost[filled] = 0.0
     del lo, hi
     if cfg.dense.subpixel and cfg.dense.subpixel_iterations > 0:
-        c0, c1 = _inner_channels(I1, nb, d.subpixel_neighbours)
-        shear = None
-        if d.subpixel_shear_radius > 0 and nb > 0:
-            shear = kernels.line_shear(j, alphas[0], off1, alphas[1], off2, next_line(lp, nstep),
-                                       d.subpixel_shear_radius, d.subpixel_max_shear)
-        for _ in range(cfg.dense.subpixel_iterations):
-            j, zncc = kernels.refine_subpixel(I1, off1, I2, off2, j, d.subpixel_half_window, 1.0,
-                                              d.subpixel_slope_radius, d.subpixel_min_stretch, c0, c1,
-                                              shear, -min(nb, d.subpixel_neighbours), I1.shape[1] // (2 * nb + 1),
-                                              d.subpixel_min_shear)
-        del shear
+        j, zncc = refine(I1, I2, lp, j, alphas, cfg)
         # A partner whose window does not correlate is most often a wrong one.
         if min_zncc > -1.0:
             j[zncc < min_zncc] = np.nan
@@ -481,7 +363,7 @@ def match_pair(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config, pro
             # Holes the correlation could not fill inside a surface: the
             # final validation judges the interpolated partners by their
             # neighbours on the lines beside them.
-            j, bridged = kernels.bridge_gaps(j, lp.offset1, d.bridge_max_gap, 0.5, 2.0, d.bridge_slope_tol)
+            j, bridged = bridge_gaps(j, lp.offset1, d.bridge_max_gap, 0.5, 2.0, d.bridge_slope_tol)
             cost[bridged] = 0.0
         # The line samples and ray angles are used up: the last validation reuses their memory.
         del idx, line, uv1, uv2, X, dist, keep, med, I1, I2, alphas
