@@ -38,7 +38,7 @@ def test_a_scene_point_lies_on_one_row_at_a_larger_angle_in_view_2(pose):
     u, v, front = project(tv.K1, np.eye(3), rays(grid.basis, phi1, a1))
     assert front.all() and np.allclose(np.column_stack([u, v]), (X[:, :2] / X[:, 2:]) * 300 + [160, 120])
     # the parallax range for the points' distances holds their column differences
-    d = (a2 - a1) / grid.alpha_step
+    d = grid.column(a1) - grid.column(a2)
     dist = np.linalg.norm(X, axis=1)
     lo, hi = parallax_columns(tv, grid, (320, 240), (dist.min(), dist.max()))
     assert lo - 1e-6 <= d.min() and d.max() <= hi + 1e-6
@@ -70,16 +70,30 @@ def test_line_images_of_a_shifted_image_are_shifted_rows():
     grid = line_grid(tv, (320, 240), (320, 240))
     grid.pad = 20
     L1, L2 = line_images(img1, img2, tv, grid, grid.pad + grid.columns + 20)
-    r, c = len(grid.phi) // 2, grid.pad + grid.columns // 2  # the image centre: a column is 0.8 px there
+    r, c = len(grid.phi) // 2, grid.pad + grid.columns // 2  # near the image centre
     u1, v1, _ = project(tv.K1, np.eye(3), rays(grid.basis, grid.phi[r], grid.alpha(c)))
+    un, _, _ = project(tv.K1, np.eye(3), rays(grid.basis, grid.phi[r], grid.alpha(c + 1)))
+    assert 0.7 < abs(un - u1) < 0.9  # about 0.8 px a column
     _, a2 = ray_angles(tv.K2, np.eye(3), grid.basis, np.array([[u1 - 10, v1]]))
     c2 = float(grid.column(a2)[0])
-    assert abs((c - c2) - 10 / 0.8) < 0.1  # 10 px = 12.5 columns of 0.8 px
+    assert abs((c - c2) * abs(un - u1) - 10) < 0.2  # 10 px in columns of that width
     # the same texture: interpolate row r of L2 at c2
     left = int(np.floor(c2))
     value2 = L2[r, left] * (left + 1 - c2) + L2[r, left + 1] * (c2 - left)
     assert abs(value2 - float(L1[r, c])) < 3
     assert abs(float(L2[r, left - 3]) - float(L1[r, c])) > abs(value2 - float(L1[r, c]))
+
+
+def test_a_scale_change_about_the_epipole_is_a_shift_of_columns():
+    # forward motion: a point at angle alpha from the baseline moves to about s * alpha;
+    # in columns that is the same shift log(s) / u_step wherever the point lies
+    tv = _two_view(np.eye(3), [0.0, 0.0, -1.0])
+    grid = line_grid(tv, (320, 240), (320, 240))
+    a1 = np.array([0.015, 0.05, 0.1, 0.2, 0.3])
+    shift = grid.column(a1) - grid.column(1.5 * a1)
+    assert np.allclose(shift, np.log(1.5) / grid.u_step, rtol=0.03)
+    # a plain angle grid would stretch it 20-fold from the first point to the last
+    assert (1.5 * a1 - a1).max() / (1.5 * a1 - a1).min() == pytest.approx(20)  # 0.3 / 0.015
 
 
 def _scene_pose(scene):
@@ -118,4 +132,4 @@ def test_sgm_matches_forward_motion_where_no_planar_rectification_exists():
     cfg = load_config(None, ["output.mesh=false", "dense.method=sgm"])
     res = reconstruct_pair(v1.image, v2.image, v1.camera(1), v2.camera(2), cfg, pose=pose)
     m = evaluate_matches(res.uv1, res.uv2, v1, v2)
-    assert m["precision@3"] > 0.8 and m["coverage@3"] > 0.4
+    assert m["precision@3"] > 0.65 and m["coverage@3"] > 0.6  # measured 0.73 / 0.70 (one match a pixel)

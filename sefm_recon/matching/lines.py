@@ -11,6 +11,13 @@ smaller ``alpha``, so that a match is ``x2 = x1 - d`` with ``d >= 0``, as rectif
 stereo matchers expect. Unlike a planar rectification this works whatever the
 epipoles, including one inside an image (forward motion, zoom).
 
+Columns are uniform in ``u = log tan(alpha / 2)`` (``du = dalpha / sin(alpha)``), not in
+``alpha``. Near ``alpha = pi / 2`` (sideways motion) the two agree. Near an epipole
+(forward motion, zoom) an image point moves away from the epipole by a factor
+(``alpha2 ~ s alpha1``): in ``u`` that is a shift by ``log s`` that leaves the local
+sampling alike in both line images, so a window matcher sees no scale change. A planar
+rectification (``du = dalpha / sin^2(alpha)``) would send the epipole to infinity.
+
 Pixel conventions are COLMAP's (``docs/CONVENTIONS.md``); ray directions are in
 camera 1's axes, ``Rc`` rotates a camera's axes into camera 1's (``R.T`` for camera 2).
 """
@@ -26,8 +33,8 @@ import numpy as np
 from ..geometry.epipolar import line_pairs, ray_angles
 from ..geometry.two_view import TwoView
 
-__all__ = ["ROW_SPACING_PX", "COLUMN_SPACING_PX", "LineGrid", "line_grid", "pixel_grid", "line_images", "rays",
-           "project"]
+__all__ = ["ROW_SPACING_PX", "COLUMN_SPACING_PX", "EPIPOLE_MARGIN_PX", "LineGrid", "line_grid", "pixel_grid",
+           "line_images", "log_tan_half", "rays", "project"]
 
 #: Neighbouring rows are at most this far apart (px) anywhere in either image. On the
 #: real pairs 1.0 px cost 0.05 of coverage at 1 px against 0.8 px (and halved the time).
@@ -35,8 +42,9 @@ ROW_SPACING_PX = 0.8
 #: Column step as an angle of ``COLUMN_SPACING_PX / f``: 0.8 px at the image centre; a finer
 #: step everywhere widened the disparity range 1.5x and cost 0.03-0.06 at 1 px (notes).
 COLUMN_SPACING_PX = 0.8
-#: Rays this close to the baseline (radians) are left out: they meet the epipole.
-_EDGE = 1e-6
+#: Rays closer than this to an epipole (px at the focal length) are left out: ``u`` runs to
+#: infinity there, and a point that close to the epipole shows almost no parallax.
+EPIPOLE_MARGIN_PX = 4.0
 #: Rows resampled at a time: their ray arrays stay near 100 MB at 4000 columns.
 _BLOCK_ROWS = 512
 
@@ -44,22 +52,28 @@ _BLOCK_ROWS = 512
 @dataclass
 class LineGrid:
     """The common ``(phi, alpha)`` grid: row ``r`` is ``phi[r]``, column ``c`` is the ray
-    ``alpha = alpha_max - (c - pad) * alpha_step``."""
+    with ``log tan(alpha / 2) = u_max - (c - pad) * u_step``."""
 
     phi: np.ndarray  #: (L,) half-plane angles, radians
     basis: np.ndarray  #: (3, 3) rows b, e_a, e_b in camera-1 axes
-    alpha_max: float  #: largest ray angle seen in either image
-    alpha_step: float  #: radians per column
+    u_max: float  #: ``log tan(alpha / 2)`` of the largest ray angle seen in either image
+    u_step: float  #: ``log tan(alpha / 2)`` per column
     columns: int  #: columns holding some ray of either image (after the pad)
-    pad: int = 0  #: columns left of ``alpha_max`` (a matcher's search window needs them)
+    pad: int = 0  #: columns left of ``u_max`` (a matcher's search window needs them)
 
     def alpha(self, col) -> np.ndarray:
-        """Ray angle of (fractional) columns."""
-        return self.alpha_max - (np.asarray(col, np.float64) - self.pad) * self.alpha_step
+        """Ray angle (radians) of (fractional) columns."""
+        u = self.u_max - (np.asarray(col, np.float64) - self.pad) * self.u_step
+        return 2.0 * np.arctan(np.exp(u))
 
     def column(self, alpha) -> np.ndarray:
-        """Fractional column of ray angles."""
-        return self.pad + (self.alpha_max - np.asarray(alpha, np.float64)) / self.alpha_step
+        """Fractional column of ray angles (radians, in (0, pi))."""
+        return self.pad + (self.u_max - log_tan_half(alpha)) / self.u_step
+
+
+def log_tan_half(alpha) -> np.ndarray:
+    """``log tan(alpha / 2)`` of ray angles in (0, pi): the column coordinate before scaling."""
+    return np.log(np.tan(0.5 * np.asarray(alpha, np.float64)))
 
 
 def pixel_grid(width: int, height: int, step: float = 4.0) -> np.ndarray:
@@ -71,15 +85,23 @@ def pixel_grid(width: int, height: int, step: float = 4.0) -> np.ndarray:
 
 
 def line_grid(tv: TwoView, size1: tuple[int, int], size2: tuple[int, int], max_lines: int = 20000) -> LineGrid:
-    """The rows and columns that cover both images (``size`` = (width, height) of each)."""
+    """The rows and columns that cover both images (``size`` = (width, height) of each).
+
+    The column step makes columns :data:`COLUMN_SPACING_PX` apart in image 1 at the
+    median ray angle of its pixels (``dalpha = sin(alpha) du``).
+    """
     lp = line_pairs(tv.K1, tv.K2, tv.R, tv.t, size1, size2, ROW_SPACING_PX, 1.0, max_lines)
+    f = 0.5 * float(tv.K1[0, 0] + tv.K1[1, 1])
+    edge = EPIPOLE_MARGIN_PX / f
     lo, hi = np.inf, -np.inf
     for K, Rc, (w, h) in ((tv.K1, np.eye(3), size1), (tv.K2, tv.R.T, size2)):
         _, alpha = ray_angles(K, Rc, lp.basis, pixel_grid(w, h))
+        alpha = np.clip(alpha, edge, np.pi - edge)
         lo, hi = min(lo, float(alpha.min())), max(hi, float(alpha.max()))
-    f = 0.5 * float(tv.K1[0, 0] + tv.K1[1, 1])
-    step = COLUMN_SPACING_PX / f
-    return LineGrid(np.asarray(lp.phi, np.float64), lp.basis, hi, step, int(math.ceil((hi - lo) / step)) + 1)
+        if K is tv.K1:
+            step = COLUMN_SPACING_PX / f / float(np.median(np.sin(alpha)))
+    u_lo, u_hi = float(log_tan_half(lo)), float(log_tan_half(hi))
+    return LineGrid(np.asarray(lp.phi, np.float64), lp.basis, u_hi, step, int(math.ceil((u_hi - u_lo) / step)) + 1)
 
 
 def rays(basis: np.ndarray, phi, alpha) -> np.ndarray:
@@ -103,16 +125,14 @@ def line_images(img1: np.ndarray, img2: np.ndarray, tv: TwoView, grid: LineGrid,
     Returns ``(L1, L2)``, each (rows, width[, channels]) of the input dtype; cells
     whose ray leaves an image or points behind it are 0.
     """
-    a = grid.alpha(np.arange(width))
-    inside = (a > _EDGE) & (a < np.pi - _EDGE)
-    alpha = np.clip(a, _EDGE, np.pi - _EDGE)
+    alpha = grid.alpha(np.arange(width))
     out = []
     for img, K, Rc in ((img1, tv.K1, np.eye(3)), (img2, tv.K2, tv.R.T)):
         L = np.zeros((len(grid.phi), width) + img.shape[2:], img.dtype)
         for r0 in range(0, len(grid.phi), _BLOCK_ROWS):  # blocks of rows bound the ray arrays' memory
             phi = grid.phi[r0:r0 + _BLOCK_ROWS]
             u, v, front = project(K, Rc, rays(grid.basis, phi[:, None], alpha[None, :]))
-            ok = front & inside[None, :]
+            ok = front
             # cv2.remap puts pixel centres at integers: COLMAP minus 0.5
             mx = np.where(ok, u - 0.5, -1e4).astype(np.float32)
             my = np.where(ok, v - 0.5, -1e4).astype(np.float32)
