@@ -55,7 +55,7 @@ def main():
     ap.add_argument("--set", dest="overrides", action="append", default=[])
     args = ap.parse_args()
     logging.basicConfig(level=logging.WARNING)
-    cfg = load_config(None, ["output.mesh=false", *args.overrides])
+    cfg = load_config(None, ["output.mesh=false", *args.overrides], internal=True)
     rows = []
     for n0, n1, K0, K1, R, t in read_pairs(args.data):
         img0, img1 = read_image(args.data / n0), read_image(args.data / n1)

@@ -87,7 +87,7 @@ def bench(size=(2000, 1500), seed: int = 7, repeat: int = 2, overrides=(), write
     from .evaluate import covisibility_mask, evaluate_matches
     from .synthetic import render_scene
 
-    cfg = load_config(None, ["output.progress=false", *overrides])
+    cfg = load_config(None, ["output.progress=false", *overrides], internal=True)
     t0 = time.perf_counter()
     scene = render_scene(seed=seed, width=size[0], height=size[1], style="classic")
     v1, v2 = scene.views[:2]
@@ -131,7 +131,7 @@ def scaling(sizes, seed: int = 7, overrides=()) -> list[dict]:
     from .config import load_config
     from .synthetic import render_scene
 
-    cfg = load_config(None, ["output.progress=false", "output.max_size=0", *overrides])
+    cfg = load_config(None, ["output.progress=false", "output.max_size=0", *overrides], internal=True)
     rows = []
     for w, h in sizes:
         scene = render_scene(seed=seed, width=w, height=h, style="classic")

@@ -182,7 +182,7 @@ def _cmd_eval(args) -> int:
     from . import eval_tables as et
     from .config import load_config
 
-    load_config(None, args.overrides)  # bad keys fail before any work
+    load_config(None, args.overrides, internal=True)  # bad keys fail before any work (eval may set internal ones)
     if not args.verbose:  # one progress line per pair, not the pipeline's own lines
         logging.getLogger("sefm_recon").setLevel(logging.WARNING)
         logging.getLogger("sefm_recon.eval_tables").setLevel(logging.ERROR if args.quiet else logging.INFO)
@@ -236,7 +236,7 @@ def _cmd_bench(args) -> int:
     from .bench import bench, dump, format_report, format_scaling, scaling
     from .config import load_config
 
-    load_config(None, args.overrides)
+    load_config(None, args.overrides, internal=True)  # bench may set internal keys, as eval does
     if args.scaling is not None:
         sizes = [_size(s) for s in (args.scaling or ["500x375", "1000x750", "2000x1500", "4000x3000"])]
         rows = scaling(sizes, args.seed, args.overrides)

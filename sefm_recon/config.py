@@ -1,8 +1,14 @@
 """Configuration: typed dataclasses, TOML presets in ``configs/``, ``--set`` overrides.
 
-A config file holds any subset of the sections and keys below; the rest keep
-their defaults. ``--set rough.jump_threshold=4`` overrides one key; unknown keys
-and wrong types are input errors.
+A config file holds any subset of the user settings (:data:`USER_KEYS`, written out in
+``configs/default.toml``); the rest keep their defaults. ``--set output.max_size=2000``
+overrides one key; unknown keys, wrong types and values out of range are input errors.
+
+The other fields (the ``lines``, ``rough``, ``pyramid`` and ``validity`` sections and
+most of ``dense``) are the internal constants of the sequential DP matcher
+(``dense.method = "sefm"``; ``"paper"`` sets them as the paper has them,
+:data:`PAPER`). They are not settings: only the evaluation and the tests change them
+(``load_config(..., internal=True)``), to measure what each stage adds.
 """
 
 from __future__ import annotations
@@ -67,9 +73,10 @@ class PyramidConfig:
 
 @dataclass
 class DenseConfig:
-    #: "sefm": the paper's DP along each line pair with its repairs; "sgm": semi-global matching
-    #: over the polar line images (matching/sgm.py), the keys below then do not apply
-    method: str = "sefm"
+    #: "sgm": semi-global matching over the polar line images (matching/sgm.py); "sefm": the
+    #: paper's DP along each line pair with its repairs; "paper": that DP as the paper has
+    #: it (no repairs). The keys below belong to the DP.
+    method: str = "sgm"
     occlusion_penalty: float = 5.0  #: DP cost of a sample without partner
     band_fraction: float = 0.5  #: DP band half width, as a share of the segment length
     band_min: int = 4
@@ -207,14 +214,16 @@ def _coerce(value: Any, kind: type, key: str) -> Any:
     raise InputError(f"config key {key}: expected {kind.__name__}, got {value!r}")
 
 
-def _apply(cfg: Config, section: str, key: str, value: Any) -> None:
+def _apply(cfg: Config, section: str, key: str, value: Any, internal: bool = False) -> None:
     sub = getattr(cfg, section, None)
     if sub is None or not dataclasses.is_dataclass(sub):
-        names = ", ".join(f.name for f in dataclasses.fields(cfg))
+        names = ", ".join(dict.fromkeys(k.split(".")[0] for k in USER_KEYS))
         raise InputError(f"unknown config section {section!r} (sections: {names})")
     types = {f.name: f.type for f in dataclasses.fields(sub)}
-    if key not in types:
-        raise InputError(f"unknown config key {section}.{key} (keys: {', '.join(types)})")
+    user = [k.split(".")[1] for k in USER_KEYS if k.startswith(section + ".")]
+    if key not in types or (not internal and f"{section}.{key}" not in USER_KEYS):
+        known = ", ".join(user) or "none: its keys are internal constants of the sequential DP matcher"
+        raise InputError(f"unknown config key {section}.{key} (keys: {known})")
     kind = {"int": int, "float": float, "bool": bool, "str": str}[types[key]] if isinstance(types[key], str) else types[key]
     setattr(sub, key, _coerce(value, kind, f"{section}.{key}"))
 
@@ -297,7 +306,30 @@ MIN_MAX_SIZE = 256
 
 
 #: String keys and their allowed values.
-_CHOICES: dict[str, tuple[str, ...]] = {"output.normals": ("grid", "knn"), "dense.method": ("sefm", "sgm")}
+_CHOICES: dict[str, tuple[str, ...]] = {"output.normals": ("grid", "knn"), "dense.method": ("sgm", "sefm", "paper")}
+
+#: The settings a user sets (``--config`` files and ``--set``); everything else is internal.
+USER_KEYS: tuple[str, ...] = (
+    "sift.max_features", "sift.max_ratio", "sift.max_image_size",
+    "geometry.min_inliers", "geometry.ransac_max_error", "geometry.min_tri_angle_deg",
+    "dense.method",
+    "output.max_size", "output.mesh", "output.poisson_depth", "output.density_quantile", "output.mesh_max_points",
+    "output.sparse_max_points", "output.normals", "output.clean_outliers", "output.progress",
+    "colmap.min_covisible", "colmap.pairs_per_image", "colmap.cell_size", "colmap.max_error",
+    "colmap.max_epipolar_error", "colmap.tri_min_angle_deg", "colmap.fuse_voxel_px", "colmap.fuse_std_ratio",
+)
+
+#: ``dense.method = "paper"``: the sequential DP as close to the paper as the pipeline
+#: allows: one epipolar line at a time (no neighbour lines), one direction, matches only
+#: between rough matches, S_v strict on every key point, S_p only on isolated spikes, no
+#: gap filling, no sub-pixel refinement, no 2-D neighbour check, no propagation across
+#: lines, no pre-blur, no coarse-to-fine pyramid.
+PAPER: tuple[str, ...] = (
+    "lines.blur_sigma=0.0", "lines.neighbours=0", "dense.both_directions=false", "dense.open_ends=false",
+    "dense.fill_max_gap=0", "dense.subpixel=false", "dense.propagate_passes=0", "validity.sv_max_unmatched=0",
+    "validity.sv_strength=1.0", "validity.sp_min_run=2", "validity.neighbour_tol_px=0.0", "validity.max_cost=1e9",
+    "pyramid.min_size=0",
+)
 
 
 def validate(cfg: Config) -> Config:
@@ -328,9 +360,15 @@ def validate(cfg: Config) -> Config:
     return cfg
 
 
-def load_config(path: str | Path | None = None, overrides: list[str] | tuple[str, ...] = ()) -> Config:
-    """Defaults, then a TOML file, then ``section.key=value`` overrides."""
+def load_config(path: str | Path | None = None, overrides: list[str] | tuple[str, ...] = (), *,
+                internal: bool = False) -> Config:
+    """Defaults, then a TOML file, then ``section.key=value`` overrides.
+
+    Only :data:`USER_KEYS` may be set unless ``internal`` (the evaluation and the tests).
+    ``dense.method = "paper"`` applies :data:`PAPER` before the overrides.
+    """
     cfg = Config()
+    items: list[tuple[str, str, Any]] = []
     if path is not None:
         path = Path(path)
         try:
@@ -344,12 +382,19 @@ def load_config(path: str | Path | None = None, overrides: list[str] | tuple[str
         for section, values in data.items():
             if not isinstance(values, dict):
                 raise InputError(f"config file {path}: {section!r} must be a [section]")
-            for key, value in values.items():
-                _apply(cfg, section, key, value)
+            items += [(section, key, value) for key, value in values.items()]
     for item in overrides:
         if "=" not in item or "." not in item.split("=", 1)[0]:
-            raise InputError(f"bad --set {item!r}: expected SECTION.KEY=VALUE, e.g. rough.jump_threshold=4")
+            raise InputError(f"bad --set {item!r}: expected SECTION.KEY=VALUE, e.g. output.max_size=2000")
         name, value = item.split("=", 1)
         section, key = name.strip().split(".", 1)
-        _apply(cfg, section, key, value.strip())
+        items.append((section, key, value.strip()))
+    for section, key, value in items:
+        _apply(cfg, section, key, value, internal)
+    if cfg.dense.method == "paper":  # the paper's constants, then whatever was set explicitly
+        for item in PAPER:
+            name, value = item.split("=", 1)
+            _apply(cfg, *name.split(".", 1), value, internal=True)
+        for section, key, value in items:
+            _apply(cfg, section, key, value, internal)
     return validate(cfg)

@@ -144,7 +144,7 @@ def _cameras(case):
 def _sefm(case, overrides: Iterable[str], own_pose: bool):
     from .pipeline import reconstruct_pair
 
-    cfg = load_config(None, ["output.mesh=false", "output.progress=false", *overrides])
+    cfg = load_config(None, ["output.mesh=false", "output.progress=false", *overrides], internal=True)
     cam1, cam2 = _cameras(case)
     res = reconstruct_pair(case.img1, case.img2, cam1, cam2, cfg, pose=None if own_pose else case.pose)
     return res.uv1, res.uv2

@@ -103,7 +103,7 @@ def test_existing_output_is_refused_and_untouched(demo_out):
           "PINHOLE 1000 750 800 800 500 375"], "is 640x480"),
         (["pair", SAMPLE / "images/view_000.jpg", SAMPLE / "images/view_001.jpg", "--set", "rough.nope=1"],
          "unknown config key"),
-        (["pair", SAMPLE / "images/view_000.jpg", SAMPLE / "images/view_001.jpg", "--set", "dense.band_min=x"],
+        (["pair", SAMPLE / "images/view_000.jpg", SAMPLE / "images/view_001.jpg", "--set", "output.poisson_depth=x"],
          "expected int"),
     ],
 )

@@ -42,7 +42,8 @@ def _true_pose_runs(scene, settings: dict):
     R = v2.R @ v1.R.T
     t = v2.t - R @ v1.t
     runs = {name: reconstruct_pair(v1.image, v2.image, v1.camera(1), v2.camera(2),
-                                   load_config(None, ["output.mesh=false", *ovr]), pose=(R, t))
+                                   load_config(None, ["output.mesh=false", "dense.method=sefm", *ovr], internal=True),
+                                   pose=(R, t))
             for name, ovr in settings.items()}
     return runs, covisibility_mask(v1, v2)
 
