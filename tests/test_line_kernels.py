@@ -6,7 +6,6 @@ import pytest
 
 from sefm_recon.geometry import kernels as gk
 from sefm_recon.geometry.epipolar import line_alphas, line_pairs, ray_angles, sample_line_channels
-from sefm_recon.matching import kernels as mk
 from sefm_recon.matching.band import depth_grids, invert_band, search_band, widen
 from sefm_recon.matching.fill import bridge_gaps, fill_from_band, fill_gaps
 from sefm_recon.matching.propagate import PropagateOptions, propagate_candidates
@@ -162,7 +161,7 @@ def test_coarse_bounds_follow_the_coarse_depths_and_fall_back_elsewhere():
 
 
 def test_two_d_check_drops_a_point_the_majority_disagrees_with():
-    from sefm_recon.matching.validity import neighbour_consistency, neighbour_median
+    from sefm_recon.matching.validity import NeighbourCheck, grid_median_check, neighbour_consistency, neighbour_median
 
     rows, cols = np.mgrid[0:5, 0:5]
     uv = np.stack([cols.ravel(), rows.ravel()], 1) + 0.5  # pixel centres
@@ -175,14 +174,14 @@ def test_two_d_check_drops_a_point_the_majority_disagrees_with():
     assert not keep[12] and keep[0] and keep[1:12].all()
     assert median[0] == 1.0  # the neighbours' median, the point itself left out
     assert median[12] == 5.0  # a dropped point keeps its own value
-    _, support, _ = mk.grid_median_check(uv, value, mask, 5, 5, 2, 1.0, 6)
+    _, support, _ = grid_median_check(uv, value, mask, 5, 5, NeighbourCheck(2, 1.0, 6))
     assert support[12] == 24 and support[0] == 8
     # a point outside the mask neither takes part nor is kept
     mask[12] = False
     keep, median = neighbour_median(uv, value, (5, 5), 2, 1.0, 6, False, mask)
     np.testing.assert_array_equal(keep, neighbour_consistency(uv, value, (5, 5), 2, 1.0, 6, False, mask))
     assert not keep[12] and keep[:12].all() and keep[13:].all() and median[12] == 5.0
-    _, support, _ = mk.grid_median_check(uv, value, mask, 5, 5, 2, 1.0, 6)
+    _, support, _ = grid_median_check(uv, value, mask, 5, 5, NeighbourCheck(2, 1.0, 6))
     assert support[0] == 7 and support[6] == 14  # the masked centre no longer counts
 
 

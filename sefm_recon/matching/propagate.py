@@ -21,6 +21,7 @@ from ..geometry.kernels import sample_band
 from ..geometry.two_view import TwoView
 from .band import depth_grids, widen
 from .points import points_of_samples
+from .validity import ValidatedPoints
 from .zncc import zncc_search
 
 
@@ -134,10 +135,15 @@ def propagate_candidates(I1, off1, I2, off2, j, cand, cand_off, start1, step1, a
     return hit
 
 
-def propagate(lp: LinePairs, tv: TwoView, I1, I2, j, idx, uv1, dist, keep, alphas, shape: tuple[int, int],
-              cfg: Config, max_step: float = np.inf, shift: int | None = None,
-              state: PropagationState | None = None) -> tuple[np.ndarray, np.ndarray, PropagationState]:
+def propagate(lp: LinePairs, tv: TwoView, I1: np.ndarray, I2: np.ndarray, j: np.ndarray, pts: ValidatedPoints,
+              alphas: tuple[np.ndarray, np.ndarray], shape: tuple[int, int], cfg: Config, max_step: float = np.inf,
+              shift: int | None = None, state: PropagationState | None = None
+              ) -> tuple[np.ndarray, np.ndarray, PropagationState]:
     """Grow the valid matches into their unmatched neighbours (2-D, across line pairs).
+
+    ``j`` (N1,) are the partners on line 2 (NaN: none), ``pts`` their points
+    and validity (:func:`.validity.validated_points`), ``I1``, ``I2`` the line
+    samples, ``alphas`` their ray angles, ``shape`` (height, width) of image 1.
 
     Every sample without a valid match gets the depth range of the matches
     within ``dense.propagate_radius`` pixels of it; where that range is at
@@ -166,9 +172,10 @@ def propagate(lp: LinePairs, tv: TwoView, I1, I2, j, idx, uv1, dist, keep, alpha
     """
     d = cfg.dense
     shift = d.propagate_window_shift if shift is None else shift
-    grids = depth_grids(uv1, dist, shape, keep)
+    keep = pts.keep
+    grids = depth_grids(pts.uv1, pts.dist, shape, keep)
     valid = np.zeros(len(j), bool)
-    valid[idx[keep]] = True
+    valid[pts.idx[keep]] = True
     jv = np.where(valid, j, np.nan)  # one pass; a NaN fill and a scatter cost 5x more here
     new = np.zeros(len(j), bool)
     start1, step1, _ = lp.side(1)
@@ -184,7 +191,7 @@ def propagate(lp: LinePairs, tv: TwoView, I1, I2, j, idx, uv1, dist, keep, alpha
         gmin, gmax = widen(grids, d.propagate_radius)
         active = active | (gmin != old_min) | (gmax != old_max)
         # A match the validation dropped may be kept among its new neighbours.
-        active |= cv2.dilate(_pixel_mask(uv1, ~keep, shape), kernel).astype(bool)
+        active |= cv2.dilate(_pixel_mask(pts.uv1, ~keep, shape), kernel).astype(bool)
         active = active.astype(np.uint8)
         del old_min, old_max
     # The unmatched samples, listed once: each pass tries only these (in place in jv).

@@ -1,7 +1,12 @@
 """SeFM on a pair of working images: line pairs -> rough -> dense -> validity.
 
 Array in, array out: images and the two-view geometry come in, matched pixel
-positions (working frame) come out.
+positions (working frame) come out. :func:`match_pair` runs the stages, each in
+its own module: the search band (:mod:`.band`), rough and dense matching per
+line pair (:mod:`.rough`, :mod:`.dense`), gap filling (:mod:`.fill`), sub-pixel
+refinement (:mod:`.subpixel`), validity (:mod:`.validity`) and propagation
+across lines (:mod:`.propagate`), on a coarser pyramid level first where the
+images are large (:func:`coarse_level`).
 """
 
 from __future__ import annotations
@@ -17,16 +22,16 @@ import numpy as np
 
 from ..config import Config
 from ..errors import InputError
-from ..geometry.epipolar import LinePairs, line_pairs, sample_line_channels
+from ..geometry.epipolar import line_pairs, sample_line_channels
 from ..geometry.triangulate import triangulate
 from ..geometry.two_view import TwoView
-from . import kernels
-from .band import coarse_search_band, invert_band, sample_alphas, search_band
+from .band import coarse_search_band, sample_alphas, search_band
+from .dense import line_options, match_direction, reverse_check
 from .fill import bridge_gaps, fill_from_band, fill_gaps
-from .points import at_distance, line_points
+from .points import at_distance
 from .propagate import propagate
 from .subpixel import refine
-from .validity import depth_continuity, neighbour_consistency, neighbour_median
+from .validity import validated_points
 
 logger = logging.getLogger(__name__)
 
@@ -59,20 +64,6 @@ def depth_range(tv: TwoView, margin: float = 2.0) -> tuple[float, float]:
             lo, hi = np.percentile(dist, [1, 99])
             return float(lo / margin), float(hi * margin)
     return 0.2 * baseline, float("inf")
-
-
-def consistent(j12: np.ndarray, i21: np.ndarray, off1, off2, count2, tol: float) -> np.ndarray:
-    """Left-right check: keep j12[i] only where matching back from round(j12[i]) returns to i."""
-    L = len(off1) - 1
-    line1 = np.repeat(np.arange(L), np.diff(off1))
-    k1 = np.arange(len(j12)) - off1[line1]
-    out = np.full_like(j12, np.nan)
-    ok = np.isfinite(j12)
-    jr = np.clip(np.rint(np.where(ok, j12, 0)).astype(np.int64), 0, count2[line1] - 1)
-    back = i21[off2[line1] + jr]
-    ok &= np.isfinite(back) & (np.abs(back - k1) <= tol)
-    out[ok] = j12[ok]
-    return out
 
 
 def _reduce(image: np.ndarray, factor: int) -> tuple[np.ndarray, float, float]:
@@ -175,32 +166,6 @@ def window_shift(cfg: Config, longest: int) -> int:
     return shift
 
 
-def _match_direction(Ia, offa, Ib, offb, lo, hi, cfg: Config, jump: float, bar=None):
-    """Run the line kernel over all line pairs, in chunks (for the progress bar)."""
-    n = len(offa) - 1
-    j = np.full(len(Ia), np.nan)
-    cost = np.full(len(Ia), np.nan, np.float32)
-    anchor = np.zeros(len(Ia), bool)
-    stats = np.zeros((n, 5), np.int64)
-    chunks = np.array_split(np.arange(n), max(1, min(50, n // 64)))
-    for chunk in chunks:
-        if len(chunk) == 0:
-            continue
-        a, b = chunk[0], chunk[-1] + 1
-        s1, e1, s2, e2 = offa[a], offa[b], offb[a], offb[b]
-        rj, rc, ra, rs = kernels.match_lines(
-            Ia[s1:e1], offa[a:b + 1] - s1, Ib[s2:e2], offb[a:b + 1] - s2, lo[s1:e1], hi[s1:e1],
-            jump, cfg.rough.descriptor_radius, cfg.rough.descriptor_coefficients,
-            cfg.rough.max_descriptor_distance, cfg.validity.sv_max_unmatched, cfg.validity.sv_strength,
-            cfg.dense.occlusion_penalty, cfg.dense.band_fraction, cfg.dense.band_min, cfg.dense.band_max,
-            cfg.dense.occlusion_run, cfg.dense.open_ends,
-        )
-        j[s1:e1], cost[s1:e1], anchor[s1:e1], stats[a:b] = rj, rc, ra, rs
-        if bar is not None:
-            bar.update(len(chunk))
-    return j, cost, anchor, stats
-
-
 def _prepare(image: np.ndarray, sigma: float, color: bool) -> np.ndarray:
     """The image as float32 (grey unless ``color``), blurred by ``sigma`` px."""
     if image.ndim == 3 and not color:
@@ -213,35 +178,6 @@ def _prepare(image: np.ndarray, sigma: float, color: bool) -> np.ndarray:
     if sigma > 0:
         cv2.GaussianBlur(img, (0, 0), sigma, dst=img)
     return img
-
-
-def _validated_points(j, cost, lp: LinePairs, tv: TwoView, shape: tuple[int, int], cfg: Config,
-                      median: bool = False, pairs: bool = True):
-    """Matched samples -> pixel pairs, points and the validity mask (S_p, then the 2-D check).
-
-    Returns ``idx, line, uv1, uv2, X, dist, keep, med`` over the matched
-    samples (see :func:`.points.line_matches_to_points`); ``med`` is None,
-    or with ``median`` and the 2-D check on, the check's neighbour median of
-    each distance (:func:`neighbour_median`). ``uv2`` and ``X`` are empty
-    without ``pairs``, and where ``med`` replaces them.
-    """
-    v = cfg.validity
-    median = median and v.neighbour_tol_px > 0
-    idx, line, uv1, uv2, X, dist, valid = line_points(j, cost, v.max_cost, np.radians(v.min_tri_angle_deg), lp, tv,
-                                                       pairs and not median)
-    keep = depth_continuity(dist, line, v.sp_depth_jump, v.sp_min_run, mask=valid)
-    med = None
-    if v.neighbour_tol_px > 0:
-        # One pixel of disparity is about 1 / (f * B) in inverse depth.
-        scale = float(tv.K1[0, 0] * np.linalg.norm(tv.t))
-        args = (uv1, scale / dist, shape, v.neighbour_radius, v.neighbour_tol_px, v.neighbour_support,
-                v.drop_isolated, keep)
-        if median:
-            keep, inv = neighbour_median(*args)
-            med = scale / inv
-        else:
-            keep = neighbour_consistency(*args)
-    return idx, line, uv1, uv2, X, dist, keep, med
 
 
 def match_pair(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config, progress: bool = False) -> DenseMatches:
@@ -297,14 +233,13 @@ def match_pair(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config, pro
 
         bar = tqdm(total=len(lp) * (2 if both else 1), desc="matching line pairs",
                    unit="line", leave=False)
-    jump = jump_threshold(cfg, max(size1 + size2))
-    j, cost, _, stats = _match_direction(I1, off1, I2, off2, lo, hi, cfg, jump, bar)
+    opts = line_options(cfg, jump_threshold(cfg, max(size1 + size2)))
+    forward = match_direction(I1, off1, I2, off2, lo, hi, opts, bar)
+    j, cost, stats = forward.j, forward.cost, forward.stats
+    del forward
     n_dense = int(np.isfinite(j).sum())
     if both:
-        lo21, hi21 = invert_band(lo, hi, off1, off2)
-        i21, _, _, _ = _match_direction(I2, off2, I1, off1, lo21, hi21, cfg, jump, bar)
-        j = consistent(j, i21, off1, off2, lp.count2, cfg.dense.consistency_px)
-        del lo21, hi21, i21
+        j = reverse_check(j, I1, off1, I2, off2, lo, hi, lp.count2, opts, cfg.dense.consistency_px, bar)
     max_scale = d.fill_max_scale if d.fill_max_scale > 0 else np.inf
     if cfg.dense.fill_max_gap > 0:
         j, filled = fill_gaps(I1, off1, I2, off2, j, cfg.dense.fill_max_gap, cfg.dense.fill_radius,
@@ -334,8 +269,7 @@ def match_pair(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config, pro
     smooth = cfg.validity.median_depth
     last = cfg.dense.propagate_passes == 0
     # Before propagation only the depths are needed.
-    idx, line, uv1, uv2, X, dist, keep, med = _validated_points(j, cost, lp, tv, img1.shape[:2], cfg, smooth and last,
-                                                                pairs=last)
+    pts = validated_points(j, cost, lp, tv, img1.shape[:2], cfg, smooth and last, pairs=last)
     timings["validity"] = time.perf_counter() - t0
 
     n_propagated = 0
@@ -343,19 +277,17 @@ def match_pair(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config, pro
         t0 = time.perf_counter()
         longest = max(size1 + size2)
         max_step, shift = shift_max_step(cfg, longest), window_shift(cfg, longest)
-        j, new, state = propagate(lp, tv, I1, I2, j, idx, uv1, dist, keep, alphas, img1.shape[:2], cfg, max_step,
-                                  shift)
+        j, new, state = propagate(lp, tv, I1, I2, j, pts, alphas, img1.shape[:2], cfg, max_step, shift)
         cost[new] = 0.0
         for _ in range(cfg.dense.propagate_rounds - 1):
             # The validation drops matches (often wrong ones next to a depth
             # edge) whose depths widened their neighbours' ranges past what
             # propagation searches: grow again from the valid ones. The last
             # validation's arrays go first, so this one reuses their memory.
-            del idx, line, uv1, uv2, X, dist, keep, med
-            idx, line, uv1, uv2, X, dist, keep, med = _validated_points(j, cost, lp, tv, img1.shape[:2], cfg,
-                                                                        pairs=False)
-            j, again, state = propagate(lp, tv, I1, I2, j, idx, uv1, dist, keep, alphas, img1.shape[:2], cfg,
-                                        max_step, shift, state=state)
+            del pts
+            pts = validated_points(j, cost, lp, tv, img1.shape[:2], cfg, pairs=False)
+            j, again, state = propagate(lp, tv, I1, I2, j, pts, alphas, img1.shape[:2], cfg, max_step, shift,
+                                        state=state)
             cost[again] = 0.0
             new |= again
         del state
@@ -366,21 +298,21 @@ def match_pair(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config, pro
             j, bridged = bridge_gaps(j, lp.offset1, d.bridge_max_gap, 0.5, 2.0, d.bridge_slope_tol)
             cost[bridged] = 0.0
         # The line samples and ray angles are used up: the last validation reuses their memory.
-        del idx, line, uv1, uv2, X, dist, keep, med, I1, I2, alphas
+        del pts, I1, I2, alphas
         n_propagated = int((new & np.isfinite(j)).sum())  # a later round's validation may drop some
-        idx, line, uv1, uv2, X, dist, keep, med = _validated_points(j, cost, lp, tv, img1.shape[:2], cfg, smooth)
+        pts = validated_points(j, cost, lp, tv, img1.shape[:2], cfg, smooth)
         timings["propagate"] = time.perf_counter() - t0
     # Index arrays gather rows several times faster than boolean masks.
-    ki = np.flatnonzero(keep)
-    score = (1.0 / (1.0 + cost[idx.take(ki)] / 8.0)).astype(np.float32)
-    uv1 = uv1.take(ki, axis=0)
-    if med is not None:
+    ki = np.flatnonzero(pts.keep)
+    score = (1.0 / (1.0 + cost[pts.idx.take(ki)] / 8.0)).astype(np.float32)
+    uv1 = pts.uv1.take(ki, axis=0)
+    if pts.median is not None:
         # The partner moves along its epipolar line to the depth of the 2-D median.
         t0 = time.perf_counter()
-        X, uv2 = at_distance(uv1, med.take(ki), tv)
+        X, uv2 = at_distance(uv1, pts.median.take(ki), tv)
         timings["validity"] += time.perf_counter() - t0
     else:
-        uv2, X = uv2.take(ki, axis=0), X.take(ki, axis=0)
+        uv2, X = pts.uv2.take(ki, axis=0), pts.X.take(ki, axis=0)
     counts = {
         "line_pairs": int(len(lp)),
         "samples": int(lp.offset1[-1]),
@@ -398,4 +330,4 @@ def match_pair(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config, pro
         counts["line_pairs"], counts["rough_matches"], counts["valid_segments"], counts["segments"],
         counts["dense_matches"], counts["valid_matches"],
     )
-    return DenseMatches(uv1, uv2, score, line.take(ki), X, counts, timings)
+    return DenseMatches(uv1, uv2, score, pts.line.take(ki), X, counts, timings)
