@@ -59,9 +59,10 @@ def propagate_candidates(I1, off1, I2, off2, j, cand, cand_off, start1, step1, a
     step1[l]``, COLMAP pixels of image 1) reads the distance range
     ``gmin``/``gmax`` (H, W) of the pixels within ``opts.radius`` of its pixel
     (inf where none; reading it here costs less than widening the grids
-    for the few samples tried); its line-2 band (:func:`sample_band` with the
-    ray angles ``a1`` (N1,), ``a2`` (N2,) and the ``baseline``, ``opts.slack``
-    samples wider) at most ``opts.max_width`` samples wide is searched by ZNCC as in
+    for the few samples tried); its line-2 band
+    (:func:`sefm_recon.geometry.kernels.sample_band` of the ray angles ``a1``
+    (N1,), ``a2`` (N2,) and the ``baseline``, ``opts.slack`` samples wider)
+    at most ``opts.max_width`` samples wide is searched by ZNCC as in
     :func:`.fill.fill_from_band`. Only samples on pixels where ``active`` (H, W)
     is set are tried (the pixels whose range changed since the last pass).
     With ``opts.split_slack`` >= 0, a band too wide is a depth edge (the
