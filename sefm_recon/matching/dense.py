@@ -275,15 +275,16 @@ def _open_end(a, b, i_anchor, j_anchor, forward, scale, lo, hi, opts, out_j, out
 
 
 @njit(cache=True)
-def _match_line(a, b, lo, hi, rough, sv, d, out_j, out_cost, out_anchor):
-    """Rough + dense matching of one line pair; writes ``out_*`` of line 1's samples.
+def _match_line(a, b, lo, hi, rough, sv, d, out_j, out_cost, out_anchor, out_stats):
+    """Rough + dense matching of one line pair; writes ``out_*`` of line 1's samples and the line's counts.
 
     Rough matches (:func:`.rough.match_keypoints`) cut the lines into
     segments; each segment valid by S_v (:func:`.validity.segment_valid`) is
     resampled to equal lengths and aligned by DP (:func:`align_path`), and
     with ``open_ends`` the parts beyond the first and last rough match too.
-    ``rough``, ``sv``, ``d`` are the fields of a :class:`LineOptions`. Returns
-    (key points on line 1, on line 2, rough matches, valid segments, segments).
+    ``rough``, ``sv``, ``d`` are the fields of a :class:`LineOptions`.
+    ``out_stats`` (5,) int64 gets the counts: key points on line 1, on line
+    2, rough matches, valid segments, segments.
     """
     r = match_keypoints(a, b, lo, hi, rough)
     kp1 = r.kp1
@@ -332,7 +333,11 @@ def _match_line(a, b, lo, hi, rough, sv, d, out_j, out_cost, out_anchor):
         s1 = min(2.0, max(0.5, s1))
         _open_end(a, b, kp1[pairs[0, 0]], kp2[pairs[0, 1]], False, s0, lo, hi, d, out_j, out_cost)
         _open_end(a, b, kp1[pairs[npairs - 1, 0]], kp2[pairs[npairs - 1, 1]], True, s1, lo, hi, d, out_j, out_cost)
-    return kp1.shape[0], kp2.shape[0], npairs, nvalid, max(npairs - 1, 0)
+    out_stats[0] = kp1.shape[0]
+    out_stats[1] = kp2.shape[0]
+    out_stats[2] = npairs
+    out_stats[3] = nvalid
+    out_stats[4] = max(npairs - 1, 0)
 
 
 @njit(parallel=True, cache=True)
@@ -365,13 +370,8 @@ def match_lines(I1, off1, I2, off2, lo, hi, rough, sv, dense):
         e2 = off2[l + 1]
         if e1 - s1 < 3 or e2 - s2 < 3:
             continue
-        r = _match_line(I1[s1:e1], I2[s2:e2], lo[s1:e1], hi[s1:e1], rough, sv, dense, out_j[s1:e1],
-                        out_cost[s1:e1], out_anchor[s1:e1])
-        stats[l, 0] = r[0]
-        stats[l, 1] = r[1]
-        stats[l, 2] = r[2]
-        stats[l, 3] = r[3]
-        stats[l, 4] = r[4]
+        _match_line(I1[s1:e1], I2[s2:e2], lo[s1:e1], hi[s1:e1], rough, sv, dense, out_j[s1:e1], out_cost[s1:e1],
+                    out_anchor[s1:e1], stats[l])
     return out_j, out_cost, out_anchor, stats
 
 
