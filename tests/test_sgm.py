@@ -92,8 +92,19 @@ def test_a_scale_change_about_the_epipole_is_a_shift_of_columns():
     a1 = np.array([0.015, 0.05, 0.1, 0.2, 0.3])
     shift = grid.column(a1) - grid.column(1.5 * a1)
     assert np.allclose(shift, np.log(1.5) / grid.u_step, rtol=0.03)
-    # a plain angle grid would stretch it 20-fold from the first point to the last
-    assert (1.5 * a1 - a1).max() / (1.5 * a1 - a1).min() == pytest.approx(20)  # 0.3 / 0.015
+    # columns and angles are each other's inverse (rays nearer the epipole than the edge aside)
+    cols = grid.column(a1)
+    assert np.allclose(grid.alpha(cols), a1) and grid.edge < a1.min()
+    assert grid.column(grid.edge / 2) == pytest.approx(grid.column(grid.edge))
+
+
+def test_one_match_per_pixel_keeps_the_consensus_of_its_samples():
+    from sefm_recon.matching.sgm import one_per_pixel
+
+    uv1 = np.array([[10.2, 5.5], [10.5, 5.5], [10.8, 5.4], [3.5, 3.5], [12.5, 5.5]])
+    uv2 = uv1 + np.array([[-4.0, 0], [-4.1, 0], [-9.0, 0], [-2.0, 0], [-4.0, 0]])  # the third one is an outlier
+    keep = one_per_pixel(uv1, uv2, (20, 10))
+    assert keep.tolist() == [1, 3, 4]  # pixel (10, 5): the sample nearest the mean displacement
 
 
 def _scene_pose(scene):

@@ -59,6 +59,7 @@ class LineGrid:
     u_max: float  #: ``log tan(alpha / 2)`` of the largest ray angle seen in either image
     u_step: float  #: ``log tan(alpha / 2)`` per column
     columns: int  #: columns holding some ray of either image (after the pad)
+    edge: float  #: rays within this angle (radians) of an epipole are left out (:data:`EPIPOLE_MARGIN_PX`)
     pad: int = 0  #: columns left of ``u_max`` (a matcher's search window needs them)
 
     def alpha(self, col) -> np.ndarray:
@@ -67,8 +68,9 @@ class LineGrid:
         return 2.0 * np.arctan(np.exp(u))
 
     def column(self, alpha) -> np.ndarray:
-        """Fractional column of ray angles (radians, in (0, pi))."""
-        return self.pad + (self.u_max - log_tan_half(alpha)) / self.u_step
+        """Fractional column of ray angles (radians), those nearer an epipole than ``edge``
+        taken at ``edge``."""
+        return self.pad + (self.u_max - log_tan_half(np.clip(alpha, self.edge, np.pi - self.edge))) / self.u_step
 
 
 def log_tan_half(alpha) -> np.ndarray:
@@ -101,7 +103,8 @@ def line_grid(tv: TwoView, size1: tuple[int, int], size2: tuple[int, int], max_l
         if K is tv.K1:
             step = COLUMN_SPACING_PX / f / float(np.median(np.sin(alpha)))
     u_lo, u_hi = float(log_tan_half(lo)), float(log_tan_half(hi))
-    return LineGrid(np.asarray(lp.phi, np.float64), lp.basis, u_hi, step, int(math.ceil((u_hi - u_lo) / step)) + 1)
+    return LineGrid(np.asarray(lp.phi, np.float64), lp.basis, u_hi, step, int(math.ceil((u_hi - u_lo) / step)) + 1,
+                    edge)
 
 
 def rays(basis: np.ndarray, phi, alpha) -> np.ndarray:
@@ -132,10 +135,9 @@ def line_images(img1: np.ndarray, img2: np.ndarray, tv: TwoView, grid: LineGrid,
         for r0 in range(0, len(grid.phi), _BLOCK_ROWS):  # blocks of rows bound the ray arrays' memory
             phi = grid.phi[r0:r0 + _BLOCK_ROWS]
             u, v, front = project(K, Rc, rays(grid.basis, phi[:, None], alpha[None, :]))
-            ok = front
             # cv2.remap puts pixel centres at integers: COLMAP minus 0.5
-            mx = np.where(ok, u - 0.5, -1e4).astype(np.float32)
-            my = np.where(ok, v - 0.5, -1e4).astype(np.float32)
+            mx = np.where(front, u - 0.5, -1e4).astype(np.float32)
+            my = np.where(front, v - 0.5, -1e4).astype(np.float32)
             L[r0:r0 + len(phi)] = cv2.remap(img, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
         out.append(L)
     return out[0], out[1]

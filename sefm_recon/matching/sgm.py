@@ -5,8 +5,9 @@ semi-global matching over the rows of the line images (:mod:`.lines`). Here Open
 StereoSGBM aggregates the cost along several paths across neighbouring lines, with
 its Birchfield-Tomasi cost on gradient-prefiltered images (robust to gain and
 offset), a uniqueness test, a left-right check and sub-pixel interpolation. The
-search range comes from the parallax of the pose's SIFT inliers (:func:`search_range`). Each valid disparity becomes a match through its two
-rays; points are triangulated as for SeFM's own matches.
+search range comes from the parallax of the pose's SIFT inliers (:func:`search_range`).
+Each valid disparity becomes a match through its two rays, one match per pixel of
+image 1 (:func:`one_per_pixel`); points are triangulated as for SeFM's own matches.
 """
 
 from __future__ import annotations
@@ -23,7 +24,7 @@ from ..errors import InputError
 from ..geometry.epipolar import ray_angles
 from ..geometry.triangulate import triangulate
 from ..geometry.two_view import TwoView
-from .lines import EPIPOLE_MARGIN_PX, LineGrid, line_grid, line_images, pixel_grid, project, rays
+from .lines import LineGrid, line_grid, line_images, pixel_grid, project, rays
 from .sefm import DenseMatches
 
 logger = logging.getLogger(__name__)
@@ -61,15 +62,14 @@ def parallax_columns(tv: TwoView, grid: LineGrid, size1: tuple[int, int], distan
     r /= np.linalg.norm(r, axis=1, keepdims=True)
     b = grid.basis[0]
     c2 = -tv.R.T @ tv.t
-    edge = EPIPOLE_MARGIN_PX / float(tv.K1[0, 0])
-    a1 = np.clip(np.arccos(np.clip(r @ b, -1.0, 1.0)), edge, np.pi - edge)
+    a1 = np.arccos(np.clip(r @ b, -1.0, 1.0))
     out = []
     for dist in distances:
         if not np.isfinite(dist):
             out.append(np.zeros(1))
             continue
         d2 = r * dist - c2
-        a2 = np.clip(np.arccos(np.clip((d2 @ b) / np.linalg.norm(d2, axis=1), -1.0, 1.0)), edge, np.pi - edge)
+        a2 = np.arccos(np.clip((d2 @ b) / np.linalg.norm(d2, axis=1), -1.0, 1.0))
         out.append(grid.column(a1) - grid.column(a2))
     d = np.concatenate(out)
     return float(d.min()), float(d.max())
@@ -86,10 +86,9 @@ def search_range(tv: TwoView, grid: LineGrid, size1: tuple[int, int]) -> tuple[f
     """
     if len(tv.kp1) < 8:
         return parallax_columns(tv, grid, size1, (0.2 * float(np.linalg.norm(tv.t)), float("inf")))
-    edge = EPIPOLE_MARGIN_PX / float(tv.K1[0, 0])
     _, a1 = ray_angles(tv.K1, np.eye(3), grid.basis, tv.kp1)
     _, a2 = ray_angles(tv.K2, tv.R.T, grid.basis, tv.kp2)
-    d = grid.column(np.clip(a1, edge, np.pi - edge)) - grid.column(np.clip(a2, edge, np.pi - edge))
+    d = grid.column(a1) - grid.column(a2)
     lo, hi = np.percentile(d, [1, 99])
     m = max(MARGIN_COLUMNS, RANGE_MARGIN * (hi - lo))
     return float(lo - m), float(hi + m)
