@@ -6,8 +6,10 @@ StereoSGBM aggregates the cost along several paths across neighbouring lines, wi
 its Birchfield-Tomasi cost on gradient-prefiltered images (robust to gain and
 offset), a uniqueness test, a left-right check and sub-pixel interpolation. The
 search range comes from the parallax of the pose's SIFT inliers (:func:`search_range`).
-Each valid disparity becomes a match through its two rays, one match per pixel of
-image 1 (:func:`one_per_pixel`); points are triangulated as for SeFM's own matches.
+The disparities are then read back at every pixel of image 1 (:func:`pixel_matches`):
+the pixel's own ray gives its row and column, the disparity there its ray in image 2,
+so each pixel holds one match exactly on its epipolar line whatever the sampling of the
+line images; points are triangulated as for SeFM's own matches.
 """
 
 from __future__ import annotations
@@ -15,21 +17,23 @@ from __future__ import annotations
 import logging
 import math
 import time
+from typing import NamedTuple
 
 import cv2
 import numpy as np
+from numba import njit, prange
 
 from ..config import Config
 from ..errors import InputError
 from ..geometry.epipolar import ray_angles
 from ..geometry.triangulate import triangulate
 from ..geometry.two_view import TwoView
-from .lines import LineGrid, line_grid, line_images, pixel_grid, project, rays
+from .lines import LineGrid, line_grid, line_images, pixel_grid
 from .sefm import DenseMatches
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["match_pair_sgm", "parallax_columns"]
+__all__ = ["match_pair_sgm", "parallax_columns", "pixel_matches"]
 
 #: StereoSGBM's settings, those of the evaluation's planar SGBM peer: 5x5 blocks, OpenCV's
 #: recommended smoothness penalties P1 = 8 C B^2 and P2 = 32 C B^2 (C channels),
@@ -52,6 +56,12 @@ RANGE_MARGIN = 0.25
 MARGIN_COLUMNS = 8
 #: SIFT depth ranges are sampled over image 1 on a grid this coarse (px).
 _GRID_PX = 8.0
+#: Neighbouring disparities within this many columns of the nearest cell's are on its
+#: surface and are interpolated with it; others (across a depth edge) are left out. One
+#: column is the left-right check's own tolerance (:data:`LR_MAX_DIFF`).
+SAME_SURFACE_COLUMNS = 1.0
+#: Pixels of image 1 read back at a time: bounds the per-pixel arrays to about 100 MB.
+_CHUNK_PIXELS = 1 << 20
 
 
 def parallax_columns(tv: TwoView, grid: LineGrid, size1: tuple[int, int], distances: tuple[float, float]):
@@ -94,31 +104,144 @@ def search_range(tv: TwoView, grid: LineGrid, size1: tuple[int, int]) -> tuple[f
     return float(lo - m), float(hi + m)
 
 
-def one_per_pixel(uv1: np.ndarray, uv2: np.ndarray, size: tuple[int, int]) -> np.ndarray:
-    """Indices of the matches to keep so that each pixel of image 1 holds at most one.
+class GridScalars(NamedTuple):
+    """What :func:`_read_back` needs of a :class:`.lines.LineGrid` and the disparity map."""
 
-    The line images sample an image around its epipole far more densely than its pixels
-    (the rows fan out from it). Of the samples in one pixel, the one kept is the one whose
-    displacement ``uv2 - uv1`` is nearest the mean displacement of them all: the
-    consensus of its neighbours, not a chance sample.
+    phi0: float  #: ``phi`` of row 0, radians
+    phi_step: float  #: between neighbouring uniform row slots, radians
+    full: bool  #: the rows go all round the epipole (slot indices wrap)
+    u_max: float
+    u_step: float
+    pad: float
+    edge: float
+    min_disparity: float  #: disparities below this are invalid
 
-    ``uv1``, ``uv2``: (N, 2) COLMAP positions; ``uv1`` inside an image of ``size`` = (width, height).
+
+@njit(parallel=True, cache=True)
+def _read_back(disp, row_of, g, basis, P2, w2, h2, phi, alpha, uv2, row):
+    """For each pixel ray ``(phi, alpha)`` of image 1: the disparity of the line images at
+    its fractional row and column, interpolated over the neighbours on the nearest
+    cell's surface, and the position in image 2 of the ray at that parallax in the
+    pixel's own half-plane. Writes ``uv2`` (N, 2) and ``row`` (N,) (-1: no match).
+
+    The valid cell of the four nearest the pixel sets the surface (the pixel is
+    unmatched when none is valid). ``row_of`` (S,) maps uniform row slots to rows of
+    ``disp`` (-1: slot not kept);
+    ``P2`` (3, 3) = ``K2 R`` projects camera-1-axes rays into image 2.
     """
-    if len(uv1) == 0:
-        return np.zeros(0, np.int64)
-    ij = np.floor(uv1).astype(np.int64)
-    pixel = ij[:, 1] * size[0] + ij[:, 0]
-    order = np.argsort(pixel, kind="stable")
-    p = pixel[order]
-    starts = np.flatnonzero(np.r_[True, p[1:] != p[:-1]])
-    flow = (uv2 - uv1)[order]
-    counts = np.diff(np.r_[starts, len(p)])
-    mean = np.add.reduceat(flow, starts, axis=0) / counts[:, None]
-    group = np.repeat(np.arange(len(starts)), counts)
-    dist = np.sum((flow - mean[group]) ** 2, axis=1)
-    best = np.lexsort((dist, group))  # sorted by group, then by distance
-    first = np.r_[True, group[best][1:] != group[best][:-1]]
-    return np.sort(order[best[first]])
+    n = phi.shape[0]
+    H, W = disp.shape
+    S = row_of.shape[0]
+    two_pi = 2.0 * np.pi
+    circle = two_pi / g.phi_step
+    for i in prange(n):
+        row[i] = -1
+        a = alpha[i]
+        if a < g.edge or a > np.pi - g.edge:
+            continue
+        c = g.pad + (g.u_max - np.log(np.tan(0.5 * a))) / g.u_step
+        x = phi[i] - g.phi0
+        x -= two_pi * np.floor(x / two_pi)
+        kf = x / g.phi_step
+        if not g.full and kf > 0.5 * (S - 1 + circle):  # just below row 0, not past the last row
+            kf -= circle
+        k0 = int(np.floor(kf))
+        wk = kf - k0
+        r0 = -1
+        r1 = -1
+        if g.full:
+            r0 = row_of[k0 % S]
+            r1 = row_of[(k0 + 1) % S]
+        else:
+            if 0 <= k0 < S:
+                r0 = row_of[k0]
+            if 0 <= k0 + 1 < S:
+                r1 = row_of[k0 + 1]
+        c0 = int(np.floor(c))
+        wc = c - c0
+        # the four cells around the pixel: the valid one nearest it sets the surface
+        best = -1.0
+        dn = 0.0
+        for j in range(4):
+            rr = r0 if j < 2 else r1
+            cc = c0 + (j & 1)
+            w = (1.0 - wk if j < 2 else wk) * (1.0 - wc if (j & 1) == 0 else wc)
+            if rr >= 0 and 0 <= cc < W and disp[rr, cc] >= g.min_disparity and w > best:
+                best = w
+                dn = disp[rr, cc]
+        if best < 0.0:
+            continue
+        num = 0.0
+        den = 0.0
+        for j in range(4):
+            rr = r0 if j < 2 else r1
+            cc = c0 + (j & 1)
+            w = (1.0 - wk if j < 2 else wk) * (1.0 - wc if (j & 1) == 0 else wc)
+            if rr < 0 or cc < 0 or cc >= W:
+                continue
+            v = disp[rr, cc]
+            if v >= g.min_disparity and abs(v - dn) <= SAME_SURFACE_COLUMNS:
+                num += w * v
+                den += w
+        d = num / den if den > 0.0 else dn
+        a2 = 2.0 * np.arctan(np.exp(g.u_max - (c - d - g.pad) * g.u_step))
+        cp, sp = np.cos(phi[i]), np.sin(phi[i])
+        ca, sa = np.cos(a2), np.sin(a2)
+        x0 = ca * basis[0, 0] + sa * (cp * basis[1, 0] + sp * basis[2, 0])
+        x1 = ca * basis[0, 1] + sa * (cp * basis[1, 1] + sp * basis[2, 1])
+        x2 = ca * basis[0, 2] + sa * (cp * basis[1, 2] + sp * basis[2, 2])
+        z = P2[2, 0] * x0 + P2[2, 1] * x1 + P2[2, 2] * x2
+        if z <= 1e-9:
+            continue
+        u = (P2[0, 0] * x0 + P2[0, 1] * x1 + P2[0, 2] * x2) / z
+        v = (P2[1, 0] * x0 + P2[1, 1] * x1 + P2[1, 2] * x2) / z
+        if u < 0.0 or u >= w2 or v < 0.0 or v >= h2:
+            continue
+        uv2[i, 0] = u
+        uv2[i, 1] = v
+        row[i] = r0 if wk < 0.5 and r0 >= 0 else (r1 if r1 >= 0 else r0)
+
+
+def pixel_matches(disp: np.ndarray, min_disparity: float, grid: LineGrid, tv: TwoView,
+                  size1: tuple[int, int], size2: tuple[int, int]):
+    """One match per pixel of image 1 from a disparity map of the line images.
+
+    ``disp`` (rows, width) float32 disparities in columns (``x2 = x1 - d``), invalid
+    below ``min_disparity``. Each pixel centre's ray gives its fractional row and
+    column; the disparity there is interpolated over the four cells around it that lie
+    on the surface of the nearest valid one (within :data:`SAME_SURFACE_COLUMNS`), and the match is the
+    ray at that parallax in the pixel's own half-plane, so it lies exactly on the
+    pixel's epipolar line. Pixels nearer an epipole than ``grid.edge``, among four invalid
+    cells, or whose match leaves image 2 get none.
+
+    Returns ``(uv1, uv2, rows)``: (N, 2) COLMAP positions and (N,) rows of the line images.
+    """
+    k = np.rint((grid.phi - grid.phi[0]) / grid.phi_step).astype(np.int64)
+    slots = int(round(2 * np.pi / grid.phi_step))
+    full = len(grid.phi) > 1 and k[-1] + 1 >= slots  # the rows close the circle
+    row_of = np.full(slots if full else k[-1] + 1, -1, np.int64)
+    row_of[k] = np.arange(len(k))
+    g = GridScalars(float(grid.phi[0]), float(grid.phi_step), bool(full), float(grid.u_max), float(grid.u_step),
+                    float(grid.pad), float(grid.edge), float(min_disparity))
+    P2 = np.ascontiguousarray(tv.K2 @ tv.R)
+    basis = np.ascontiguousarray(grid.basis, np.float64)
+    w, h = size1
+    rows_per_chunk = max(1, _CHUNK_PIXELS // w)
+    xs = np.arange(w) + 0.5
+    out1, out2, out_r = [], [], []
+    for y0 in range(0, h, rows_per_chunk):
+        ys = np.arange(y0, min(h, y0 + rows_per_chunk)) + 0.5
+        X, Y = np.meshgrid(xs, ys)
+        uv1 = np.column_stack([X.ravel(), Y.ravel()])
+        phi, alpha = ray_angles(tv.K1, np.eye(3), grid.basis, uv1)
+        uv2 = np.empty_like(uv1)
+        row = np.empty(len(uv1), np.int64)
+        _read_back(disp, row_of, g, basis, P2, float(size2[0]), float(size2[1]), phi, alpha, uv2, row)
+        ok = row >= 0
+        out1.append(uv1[ok])
+        out2.append(uv2[ok])
+        out_r.append(row[ok])
+    return np.concatenate(out1), np.concatenate(out2), np.concatenate(out_r)
 
 
 def match_pair_sgm(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config,
@@ -142,39 +265,27 @@ def match_pair_sgm(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config,
     lo, hi = search_range(tv, grid, size1)
     min_d = int(math.floor(lo - MARGIN_COLUMNS))
     num_d = int(math.ceil((hi - lo + 2 * MARGIN_COLUMNS + 1) / 16.0)) * 16  # OpenCV: a multiple of 16
-    grid.pad = max(min_d + num_d, 0) + 1  # every column of image 1 keeps its whole search window
-    width = grid.pad + grid.columns + max(-min_d, 0) + 1
-    L1, L2 = line_images(img1, img2, tv, grid, width)
+    # Image 2's line image is shifted by min_d, so that OpenCV searches 0..num_d; the pad
+    # left of image 1's columns holds the search window of its first columns.
+    grid.pad = num_d + 1
+    width = grid.pad + grid.columns + 1
+    L1, L2 = line_images(img1, img2, tv, grid, width, shift2=min_d)
     timings["line_pairs"] = time.perf_counter() - t0
     logger.info("line images %dx%d, parallax %d..%d columns", width, len(grid.phi), min_d, min_d + num_d)
 
     t0 = time.perf_counter()
     cn = L1.shape[2] if L1.ndim == 3 else 1
     full = L1.shape[0] * L1.shape[1] * num_d <= MAX_FULL_VOLUME
-    sgbm = cv2.StereoSGBM_create(minDisparity=min_d, numDisparities=num_d, blockSize=BLOCK,
+    sgbm = cv2.StereoSGBM_create(minDisparity=0, numDisparities=num_d, blockSize=BLOCK,
                                  P1=8 * cn * BLOCK**2, P2=32 * cn * BLOCK**2, disp12MaxDiff=LR_MAX_DIFF,
                                  uniquenessRatio=UNIQUENESS, speckleWindowSize=SPECKLE_WINDOW,
                                  speckleRange=SPECKLE_RANGE,
                                  mode=cv2.STEREO_SGBM_MODE_HH if full else cv2.STEREO_SGBM_MODE_SGBM_3WAY)
-    disp = sgbm.compute(L1, L2).astype(np.float32) / 16.0  # fixed point, 4 fractional bits
+    disp = sgbm.compute(L1, L2).astype(np.float32) / 16.0 + min_d  # fixed point, 4 fractional bits; invalid: -1
     del L1, L2
-    rows, cols = np.nonzero(disp >= min_d)
-    d = disp[rows, cols].astype(np.float64)
+    n_dense = int(np.count_nonzero(disp >= min_d))
+    uv1, uv2, rows = pixel_matches(disp, min_d, grid, tv, size1, size2)
     del disp
-    n_dense = len(d)
-    a1, a2 = grid.alpha(cols), grid.alpha(cols - d)
-    ok = (a1 > 0) & (a2 < np.pi)
-    phi = grid.phi[rows]
-    u1, v1, f1 = project(tv.K1, np.eye(3), rays(grid.basis, phi, a1))
-    u2, v2, f2 = project(tv.K2, tv.R.T, rays(grid.basis, phi, a2))
-    with np.errstate(invalid="ignore"):
-        ok &= f1 & f2 & (u1 >= 0) & (u1 < size1[0]) & (v1 >= 0) & (v1 < size1[1])
-        ok &= (u2 >= 0) & (u2 < size2[0]) & (v2 >= 0) & (v2 < size2[1])
-    uv1 = np.column_stack([u1[ok], v1[ok]])
-    uv2 = np.column_stack([u2[ok], v2[ok]])
-    rows = rows[ok]
-    one = one_per_pixel(uv1, uv2, size1)
-    uv1, uv2, rows = uv1[one], uv2[one], rows[one]
     X, valid, _ = triangulate(tv.K1, tv.K2, tv.R, tv.t, uv1, uv2)
     keep = np.flatnonzero(valid)
     timings["matching"] = time.perf_counter() - t0
