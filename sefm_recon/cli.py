@@ -24,15 +24,14 @@ class _Parser(argparse.ArgumentParser):
 
 
 def _max_size(text: str) -> int:
-    from .config import MIN_MAX_SIZE
+    from .config import check_value
 
     try:
-        value = int(text)
+        return check_value("output.max_size", int(text))
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected a whole number of pixels, got {text!r}") from None
-    if value != 0 and value < MIN_MAX_SIZE:
-        raise argparse.ArgumentTypeError(f"expected 0 (never downscale) or at least {MIN_MAX_SIZE} px, got {value}")
-    return value
+    except InputError as err:  # the range of output.max_size, which --max-size sets
+        raise argparse.ArgumentTypeError(str(err).replace("config key output.max_size: ", "")) from None
 
 
 def _common(p: argparse.ArgumentParser) -> None:
