@@ -67,3 +67,20 @@ def test_no_development_diary(path):
     diary = re.compile(r"\b(this session|earlier (?:version|run|session)s?|used to be|before this version|"
                        r"(?:\w+ )?(?:sessions?|commits?) ago|we now|is now|are now|now (?:runs|gives|uses))\b", re.I)
     assert diary.findall(path.read_text()) == []
+
+
+def _sections(text: str) -> list[str]:
+    return re.split(r"^#{2,3} ", text, flags=re.MULTILINE)
+
+
+def test_every_results_table_stands_under_its_command():
+    """A table or printed block in docs/results.md shares its section with the command that regenerates it."""
+    text = (ROOT / "docs" / "results.md").read_text()
+    checked = 0
+    for section in _sections(text)[1:]:
+        if "\n|---" in section or "\n```" in section:
+            checked += 1
+            commands = [line for line in section.splitlines()
+                        if line.startswith("    ") and re.search(r"\.venv/bin/|scripts/|\bmake ", line)]
+            assert commands, section.splitlines()[0]
+    assert checked >= 5  # real, generated, the DP's, speed and memory, workspaces
