@@ -3,12 +3,18 @@ PYTHON ?= python3
 VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
+TESTED := $(VENV)/.installed-test
+# Quiet pip: no version notice, no root-user notice, and no build-backend warnings (setuptools'
+# "Editable installation" box, which new pip shows even with -q); errors still print.
+PIP    := PYTHONWARNINGS=ignore $(BIN)/pip install -q --disable-pip-version-check --root-user-action=ignore
 SAMPLE := data_samples/scene
 DEMO   := demo_out
 
-.PHONY: install sysdeps demo test bench sample clean
+.PHONY: install install-test sysdeps demo test bench sample clean
 
+# The package alone (what demo, bench and sample need); install-test adds pytest and hypothesis.
 install: sysdeps $(STAMP)
+install-test: install $(TESTED)
 
 # open3d needs the system library libusb-1.0-0.
 sysdeps:
@@ -23,17 +29,21 @@ sysdeps:
 	fi
 
 $(STAMP): pyproject.toml
-	$(PYTHON) -m venv $(VENV)
-	$(BIN)/pip install -q --upgrade pip
-	$(BIN)/pip install -q -e '.[test]'
+	@echo "installing sefm-recon and its dependencies into $(VENV) (a few minutes the first time)"
+	@$(PYTHON) -m venv $(VENV)
+	@$(PIP) -e .
 	@touch $(STAMP)
+
+$(TESTED): $(STAMP)
+	@$(PIP) -e '.[test]'
+	@touch $(TESTED)
 
 demo: install
 	$(BIN)/sefm-recon pair $(SAMPLE)/images/view_000.jpg $(SAMPLE)/images/view_001.jpg \
 	  --camera "$$(cat $(SAMPLE)/camera.txt)" -o $(DEMO) --overwrite
 	@echo "open $(DEMO)/points.ply or $(DEMO)/mesh.ply in MeshLab; $(DEMO)/matches.png shows the matches"
 
-test: install
+test: install-test
 	$(BIN)/python -m pytest -q
 
 bench: install

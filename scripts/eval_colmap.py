@@ -8,7 +8,7 @@ pairs and time, fused.ply points (counted by pymeshlab when installed, else from
 the PLY header), the share of fused points within 1 % (and 0.5 %, 0.1 %) of the
 scene size of the true surface, database.db contents (opened with pycolmap), and
 the triangulated sparse/ model's points, mean reprojection error, track length
-and accuracy.
+and accuracy; last, the run's row of the workspace table in docs/results.md.
 
 The distance of a point to the true surface is bounded from above by projecting
 it into every view and comparing its depth with that view's depth map along the
@@ -119,6 +119,10 @@ def main(argv=None) -> int:
     print(f"sparse/: {rec.num_reg_images()} images, {rec.num_points3D()} points, mean reprojection error "
           f"{rec.compute_mean_reprojection_error():.3f} px, mean track length {rec.compute_mean_track_length():.2f}; "
           f"within 1%: {np.mean(dP <= 0.01 * size):.4f}, 0.5%: {np.mean(dP <= 0.005 * size):.4f}")
+    # last: this run's row of the workspace table in docs/results.md
+    print(f"| {a.seed} | {n_fused:,} | {np.mean(d <= 0.01 * size):.1%} / {np.mean(d <= 0.005 * size):.1%} | "
+          f"{db_counts[2]:,} / {db_counts[3]:,} | {rec.num_points3D():,} | "
+          f"{rec.compute_mean_reprojection_error():.2f} px | {np.mean(dP <= 0.01 * size):.1%} | {wall:.0f} s |")
     if tmp is not None:
         tmp.cleanup()
     return 0

@@ -24,15 +24,14 @@ class _Parser(argparse.ArgumentParser):
 
 
 def _max_size(text: str) -> int:
-    from .config import MIN_MAX_SIZE
+    from .config import check_value
 
     try:
-        value = int(text)
+        return check_value("output.max_size", int(text))
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected a whole number of pixels, got {text!r}") from None
-    if value != 0 and value < MIN_MAX_SIZE:
-        raise argparse.ArgumentTypeError(f"expected 0 (never downscale) or at least {MIN_MAX_SIZE} px, got {value}")
-    return value
+    except InputError as err:  # the range of output.max_size, which --max-size sets
+        raise argparse.ArgumentTypeError(str(err).replace("config key output.max_size: ", "")) from None
 
 
 def _common(p: argparse.ArgumentParser) -> None:
@@ -140,6 +139,23 @@ def _setup_logging(quiet: bool, verbose: bool) -> None:
         import os
 
         os.environ.setdefault("GLOG_minloglevel", "2")
+        # The matcher's diagnostics (epipoles, line counts, depth bands, once per pyramid level) are for -v;
+        # a user acts on the cameras, the pose's inliers, warnings and the summary line.
+        for name in ("sefm_recon.geometry.epipolar", "sefm_recon.matching"):
+            logging.getLogger(name).setLevel(logging.WARNING)
+
+
+def _say_if_compiling(method: str) -> None:
+    """One line before a first run compiles the numba kernels, which it otherwise does in silence."""
+    from .io.kernel_cache import cold_kernels, kernel_sources
+
+    # the semi-global matcher (OpenCV) uses no kernel of matching/; the sequential DP is mostly kernels there
+    sources = [s for s in kernel_sources() if method != "sgm" or s.parent.name != "matching"]
+    cold = cold_kernels(sources)
+    if cold:
+        dp = any(s.parent.name == "matching" for s in cold)
+        logger.info("first run: compiling the numerical kernels once (%s); later runs reuse them",
+                    "about a minute" if dp else "a few seconds")
 
 
 def _cmd_pair(args) -> int:
@@ -149,6 +165,7 @@ def _cmd_pair(args) -> int:
     cfg = load_config(args.config, args.overrides)
     if args.max_size is not None:
         cfg.output.max_size = args.max_size
+    _say_if_compiling(cfg.dense.method)
     report = run_pair(args.image1, args.image2, args.output, cfg, camera=args.camera, camera2=args.camera2,
                       overwrite=args.overwrite, progress=not args.quiet and cfg.output.progress)
     c = report["counts"]
@@ -163,6 +180,7 @@ def _cmd_colmap(args) -> int:
     from .config import load_config
 
     cfg = load_config(args.config, args.overrides)
+    _say_if_compiling(cfg.dense.method)
     report = run_colmap(args.workspace, args.output, cfg, pairs_file=args.pairs, image_dir=args.image_dir,
                         sparse_dir=args.sparse_dir, overwrite=args.overwrite, workers=args.workers,
                         scheduler=args.scheduler, progress=not args.quiet and cfg.output.progress)

@@ -1,8 +1,11 @@
 """Configuration: typed dataclasses, TOML presets in ``configs/``, ``--set`` overrides.
 
-A config file holds any subset of the user settings (:data:`USER_KEYS`, written out in
-``configs/default.toml``); the rest keep their defaults. ``--set output.max_size=2000``
-overrides one key; unknown keys, wrong types and values out of range are input errors.
+A config file holds any subset of the user settings (:data:`USER_KEYS`); the rest keep
+their defaults. ``--set output.max_size=2000`` overrides one key; unknown keys, wrong
+types and values out of range are input errors. Each user setting is declared with
+:func:`_setting`: its default, meaning, unit and allowed range sit in one place, and
+``scripts/write_default_config.py`` writes them out as ``configs/default.toml`` and
+``docs/configuration.md``.
 
 The other fields (the ``lines``, ``rough``, ``pyramid`` and ``validity`` sections and
 most of ``dense``) are the internal constants of the sequential DP matcher
@@ -14,6 +17,7 @@ most of ``dense``) are the internal constants of the sequential DP matcher
 from __future__ import annotations
 
 import dataclasses
+import math
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -21,19 +25,101 @@ from typing import Any
 
 from .errors import InputError
 
+#: ``output.max_size`` and ``sift.max_image_size`` in pixels: the largest sensors have
+#: about 20 000 px on their long side, so a larger value would only be a typo (it would
+#: mean full size, like 0).
+MAX_SIDE = 100_000
+#: ``output.max_size`` is 0 (never downscale) or at least this many pixels: a smaller
+#: working copy keeps under 65 000 pixels, too few for a dense cloud worth a mesh.
+MIN_MAX_SIZE = 256
+#: ``output.mesh_max_points`` and ``output.sparse_max_points``: more than a pair at the
+#: default working size can give (3200 x 2400 = 7.7 million pixels, one match each).
+MAX_POINTS = 10_000_000
+
+
+@dataclass(frozen=True)
+class Range:
+    """The values a numeric setting accepts: ``low``..``high`` (``None`` = open-ended),
+    either end excluded when ``low_open``/``high_open``, plus an optional ``special``
+    value outside it with a meaning of its own (``(0, "full size")``). Floats must be finite."""
+
+    low: float | None = None
+    high: float | None = None
+    low_open: bool = False
+    high_open: bool = False
+    special: tuple[float, str] | None = None
+
+    def holds(self, value: float) -> bool:
+        if self.special is not None and value == self.special[0]:
+            return True
+        if self.low is not None and (value < self.low or (self.low_open and value == self.low)):
+            return False
+        return self.high is None or value < self.high or (not self.high_open and value == self.high)
+
+    def text(self) -> str:
+        """``"> 0 and <= 1"``, ``"0 (full size) or >= 64 and <= 100000"``."""
+        def num(v: float) -> str:
+            return str(int(v)) if float(v).is_integer() else f"{v:g}"
+
+        ends = []
+        if self.low is not None:
+            ends.append(f"{'>' if self.low_open else '>='} {num(self.low)}")
+        if self.high is not None:
+            ends.append(f"{'<' if self.high_open else '<='} {num(self.high)}")
+        text = " and ".join(ends)
+        if self.special is not None:
+            text = f"{num(self.special[0])} ({self.special[1]}) or {text}"
+        return text
+
+
+def _setting(default: Any, doc: str, *, unit: str = "", range: Range | None = None,
+             choices: tuple[str, ...] = (), why: str = "") -> Any:
+    """A user setting: a dataclass field whose metadata carries its documentation.
+
+    ``doc`` says what it does, ``unit`` what its numbers count, ``range`` (numbers) or
+    ``choices`` (strings) what it accepts, and ``why`` why the range ends where it does.
+    """
+    return field(default=default, metadata={"doc": doc, "unit": unit, "range": range, "choices": choices,
+                                            "why": why})
+
 
 @dataclass
 class SiftConfig:
-    max_features: int = 4096  #: SIFT features per image
-    max_ratio: float = 0.8  #: Lowe's ratio test
-    max_image_size: int = 1024  #: SIFT runs on copies downscaled to this longest side (0 = full size)
+    """SIFT features for the two-view pose (``sefm-recon pair``)."""
+
+    max_features: int = _setting(
+        4096, "SIFT features kept per image (the strongest)", unit="features", range=Range(5, 100_000),
+        why="the five-point pose needs 5 matches (and at least geometry.min_inliers are needed); beyond 100 000, "
+            "25 times the default, SIFT and its matching only get slower: a pose needs tens of well spread inliers")
+    max_ratio: float = _setting(
+        0.8, "Lowe's ratio test: a match's descriptor distance over the second-best one's must be below this",
+        range=Range(0, 1, low_open=True),
+        why="a ratio of two distances, the best one first: at 1 every mutual nearest neighbour passes, at 0 none")
+    max_image_size: int = _setting(
+        1024, "SIFT runs on copies downscaled to this longest side", unit="px",
+        range=Range(64, MAX_SIDE, special=(0, "full size")),
+        why="images under 64 px on a side are refused as too small to match; above 100 000 px (beyond any "
+            "camera's sensor) the value would mean full size, like 0")
 
 
 @dataclass
 class GeometryConfig:
-    min_inliers: int = 30  #: geometric inliers needed to trust the pose
-    ransac_max_error: float = 2.0  #: px
-    min_tri_angle_deg: float = 0.5  #: median triangulation angle below which there is no baseline
+    """The relative pose from SIFT matches; the baseline test."""
+
+    min_inliers: int = _setting(
+        30, "SIFT matches consistent with the pose (RANSAC inliers) needed to trust it", unit="matches",
+        range=Range(5, 100_000),
+        why="the five-point essential-matrix solver needs 5; no more inliers than sift.max_features can exist")
+    ransac_max_error: float = _setting(
+        2.0, "RANSAC inlier threshold: largest distance of a SIFT match from its epipolar line", unit="px",
+        range=Range(0, 50, low_open=True),
+        why="a distance; SIFT positions are good to a pixel or two, and at 50 px (5 % of a 1024 px SIFT image) "
+            "wrong matches count as inliers")
+    min_tri_angle_deg: float = _setting(
+        0.5, "a pair whose SIFT inliers' median triangulation angle is below this has no baseline: refused "
+             "(sefm-recon pair) or skipped (sefm-recon colmap)", unit="degrees", range=Range(0, 90),
+        why="an angle between two rays; cameras that see one surface from both sides of 90 degrees face each "
+            "other and see different sides of it")
     depth_margin: float = 2.0  #: search depths from p1/margin to p99*margin of the SIFT points' depths
 
 
@@ -54,7 +140,7 @@ class RoughConfig:
     #: images with a longer side than this get ``jump_threshold`` scaled by size / side (0 = never)
     jump_reference_size: int = 1000
     descriptor_radius: int = 8  #: half width of the FFT window, samples
-    descriptor_coefficients: int = 4  #: Fourier coefficients kept (beyond DC); 6 measured no better, and 4 are faster
+    descriptor_coefficients: int = 4  #: Fourier coefficients kept (beyond DC); more cost time without matching better
     max_descriptor_distance: float = 0.8  #: pairs farther apart never match
     band_slack: int = 3  #: samples added to each side of the depth search band
 
@@ -73,10 +159,11 @@ class PyramidConfig:
 
 @dataclass
 class DenseConfig:
-    #: "sgm": semi-global matching over the polar line images (matching/sgm.py); "sefm": the
-    #: paper's DP along each line pair with its repairs; "paper": that DP as the paper has
-    #: it (no repairs). The keys below belong to the DP.
-    method: str = "sgm"
+    method: str = _setting(
+        "sgm", "the dense matcher: sgm, semi-global matching over the polar line images; sefm, the paper's "
+               "dynamic programming along each pair of epipolar lines, with its repairs; paper, that DP as the "
+               "paper has it", choices=("sgm", "sefm", "paper"))
+    # The keys below belong to the DP (internal constants).
     occlusion_penalty: float = 5.0  #: DP cost of a sample without partner
     band_fraction: float = 0.5  #: DP band half width, as a share of the segment length
     band_min: int = 4
@@ -146,29 +233,83 @@ class ValidityConfig:
 
 @dataclass
 class OutputConfig:
-    max_size: int = 3200  #: work on images downscaled to this longest side (px); 0 = never
-    mesh: bool = True  #: write mesh.ply
-    poisson_depth: int = 9
-    density_quantile: float = 0.05  #: trim mesh vertices below this Poisson density quantile
-    mesh_max_points: int = 150000
-    sparse_max_points: int = 100000  #: points written to the COLMAP model
-    normals: str = "grid"  #: "grid": from camera 1's pixel grid (fast); "knn": open3d's KD-tree PCA
-    clean_outliers: bool = False  #: open3d statistical outlier removal before writing points.ply (slow; the 2-D check does most of its work)
-    progress: bool = True  #: tqdm bar on long runs (the CLI's -q turns it off)
+    """What is written, and the working size."""
+
+    max_size: int = _setting(
+        3200, "match on copies downscaled to this longest side (--max-size); every coordinate written is in the "
+              "original pixels", unit="px", range=Range(MIN_MAX_SIZE, MAX_SIDE, special=(0, "full size")),
+        why="a copy under 256 px keeps under 65 000 pixels, too few for a dense cloud worth a mesh; above "
+            "100 000 px (beyond any camera's sensor) the value would mean full size, like 0")
+    mesh: bool = _setting(True, "write mesh.ply")
+    poisson_depth: int = _setting(
+        9, "octree depth of the screened Poisson mesh: at most 2^depth cells along each axis", unit="levels",
+        range=Range(5, 12),
+        why="open3d refuses depth 1 and prints hundreds of warnings at depths 2 to 4; at 12 the grid has 4096 "
+            "cells a side, finer than even output.mesh_max_points' maximum of 10 million points can fill")
+    density_quantile: float = _setting(
+        0.05, "mesh vertices whose Poisson density is below this quantile are trimmed (0 = keep all)",
+        range=Range(0, 1, high_open=True),
+        why="a quantile: at 1 every vertex would be trimmed")
+    mesh_max_points: int = _setting(
+        150000, "the mesh is built from at most this many points (voxel-averaged); its time grows with them",
+        unit="points", range=Range(100, MAX_POINTS),
+        why="Poisson needs at least 100 oriented points for a surface; 10 million is more than a pair at the "
+            "default working size gives (3200 x 2400 pixels, one match each)")
+    sparse_max_points: int = _setting(
+        100000, "points written to the COLMAP model in sparse/ (a random subset; 0 = cameras and poses only)",
+        unit="points", range=Range(0, MAX_POINTS),
+        why="a count; 10 million is more than a pair at the default working size gives")
+    normals: str = _setting(
+        "grid", "point normals: grid, from camera 1's pixel grid (fast); knn, open3d's nearest-neighbour PCA",
+        choices=("grid", "knn"))
+    clean_outliers: bool = _setting(
+        False, "open3d's statistical outlier removal before writing points.ply (slow; the matcher's own checks "
+               "do most of its work)")
+    progress: bool = _setting(True, "a progress bar on long runs (the command line's -q turns it off)")
 
 
 @dataclass
 class ColmapConfig:
     """``sefm-recon colmap``: pair selection, fusion and the COLMAP database."""
 
-    min_covisible: int = 30  #: sparse points two images must share to be paired (model with points)
-    pairs_per_image: int = 4  #: keep each image's best partners by shared points (0 = all)
-    cell_size: float = 2.0  #: px; keypoint quantisation cell (at most one keypoint per cell), as hloc
-    max_error: float = 0.75  #: px; a match endpoint farther from its keypoint is dropped
-    max_epipolar_error: float = 4.0  #: px; two-view geometry inliers
-    tri_min_angle_deg: float = 1.5  #: COLMAP triangulator: smallest triangulation angle
-    fuse_voxel_px: float = 1.0  #: fusion voxel, in pixels of footprint at the median depth
-    fuse_std_ratio: float = 2.5  #: statistical outlier removal of the fused cloud
+    min_covisible: int = _setting(
+        30, "sparse points two images must share to be paired (a model with points, no --pairs)",
+        unit="points", range=Range(1, 100_000),
+        why="one shared point is the least overlap; no two images share more points than COLMAP extracts "
+            "features per image (8192 by default), so 100 000 would pair nothing")
+    pairs_per_image: int = _setting(
+        4, "each image keeps this many partners, those it shares the most points with (0 = all)", unit="images",
+        range=Range(0, 10_000),
+        why="a count of images; 10 000 partners is more than a workspace matched pair by pair holds, and would "
+            "mean all, like 0")
+    cell_size: float = _setting(
+        2.0, "database.db keypoints: at most one per cell of this size, placed where the matches in it agree "
+             "(as hloc's match_dense)", unit="px", range=Range(0.5, 64),
+        why="the matcher gives at most one match per pixel of image 1, so a cell under half a pixel holds one "
+            "match end and quantises nothing; above 64 px one keypoint stands for thousands of matches")
+    max_error: float = _setting(
+        0.75, "a match end farther than this from its cell's keypoint loses its match", unit="px",
+        range=Range(0.1, 64),
+        why="below 0.1 px, finer than the matches' sub-pixel accuracy, almost every match end is dropped; no end "
+            "is farther from its keypoint than its cell's diagonal, so past the largest cell nothing changes")
+    max_epipolar_error: float = _setting(
+        4.0, "inlier threshold of the two-view geometries in database.db: distance of a match from its "
+             "epipolar line", unit="px", range=Range(0, 100, low_open=True),
+        why="a distance; the dense matches lie on their epipolar lines to a fraction of a pixel before "
+            "quantisation moves them by at most colmap.max_error, and at 100 px the test keeps everything")
+    tri_min_angle_deg: float = _setting(
+        1.5, "COLMAP's triangulator: smallest triangulation angle of a point in sparse/", unit="degrees",
+        range=Range(0, 90), why="as geometry.min_tri_angle_deg")
+    fuse_voxel_px: float = _setting(
+        1.0, "fused.ply keeps one point per voxel whose size is the footprint of this many pixels at the "
+             "median depth", unit="px", range=Range(0.1, 100),
+        why="below a tenth of a pixel no two points share a voxel and fusion merges nothing; at 100 px one "
+            "point stands for 10 000 pixels of each photo")
+    fuse_std_ratio: float = _setting(
+        2.5, "statistical outlier removal of fused.ply: a point whose mean distance to its neighbours is this "
+             "many standard deviations above the average is dropped", unit="standard deviations",
+        range=Range(0, 10, low_open=True),
+        why="a number of standard deviations; beyond 10 a cloud of real surfaces has nothing left to drop")
 
 
 @dataclass
@@ -228,12 +369,8 @@ def _apply(cfg: Config, section: str, key: str, value: Any, internal: bool = Fal
     setattr(sub, key, _coerce(value, kind, f"{section}.{key}"))
 
 
-#: Allowed ranges ``(low, high, low_open)`` of numeric keys; ``None`` = unbounded,
-#: ``low_open`` = the low end itself is not allowed. Every float must be finite.
-_LIMITS: dict[str, tuple[float | None, float | None, bool]] = {
-    "sift.max_features": (1, None, False),
-    "sift.max_ratio": (0, 1, True),
-    "sift.max_image_size": (0, None, False),
+#: Ranges of the internal constants (the user settings carry theirs in :func:`_setting`).
+_INTERNAL_RANGES: dict[str, Range] = {key: Range(low, high, low_open) for key, (low, high, low_open) in {
     "pyramid.min_size": (0, None, False),
     "pyramid.factor": (2, 16, False),
     "dense.propagate_passes": (0, 16, False),
@@ -258,9 +395,6 @@ _LIMITS: dict[str, tuple[float | None, float | None, bool]] = {
     "dense.fill_max_scale": (0, None, False),
     "dense.subpixel_min_stretch": (0, 1, False),
     "dense.reverse_max_size": (0, None, False),
-    "geometry.min_inliers": (5, None, False),
-    "geometry.ransac_max_error": (0, None, True),
-    "geometry.min_tri_angle_deg": (0, 90, False),
     "geometry.depth_margin": (1, None, False),
     "lines.line_spacing": (0.1, None, False),
     "lines.sample_spacing": (0.1, None, False),
@@ -286,38 +420,18 @@ _LIMITS: dict[str, tuple[float | None, float | None, bool]] = {
     "validity.sp_min_run": (1, None, False),
     "validity.max_cost": (0, None, False),
     "validity.min_tri_angle_deg": (0, 90, False),
-    "output.max_size": (0, None, False),
-    "output.poisson_depth": (1, 12, False),
-    "output.density_quantile": (0, 1, False),
-    "output.mesh_max_points": (1, None, False),
-    "output.sparse_max_points": (0, None, False),
-    "colmap.min_covisible": (1, None, False),
-    "colmap.pairs_per_image": (0, None, False),
-    "colmap.cell_size": (0, None, True),
-    "colmap.max_error": (0, None, True),
-    "colmap.max_epipolar_error": (0, None, True),
-    "colmap.tri_min_angle_deg": (0, 90, False),
-    "colmap.fuse_voxel_px": (0, None, True),
-    "colmap.fuse_std_ratio": (0, None, True),
-}
-
-#: ``output.max_size`` is 0 (never downscale) or at least this many pixels.
-MIN_MAX_SIZE = 256
+}.items()}
 
 
-#: String keys and their allowed values.
-_CHOICES: dict[str, tuple[str, ...]] = {"output.normals": ("grid", "knn"), "dense.method": ("sgm", "sefm", "paper")}
+def _user_fields(cfg: Config) -> list[tuple[str, dataclasses.Field]]:
+    return [(f"{sec.name}.{f.name}", f) for sec in dataclasses.fields(cfg)
+            for f in dataclasses.fields(getattr(cfg, sec.name)) if "doc" in f.metadata]
+
 
 #: The settings a user sets (``--config`` files and ``--set``); everything else is internal.
-USER_KEYS: tuple[str, ...] = (
-    "sift.max_features", "sift.max_ratio", "sift.max_image_size",
-    "geometry.min_inliers", "geometry.ransac_max_error", "geometry.min_tri_angle_deg",
-    "dense.method",
-    "output.max_size", "output.mesh", "output.poisson_depth", "output.density_quantile", "output.mesh_max_points",
-    "output.sparse_max_points", "output.normals", "output.clean_outliers", "output.progress",
-    "colmap.min_covisible", "colmap.pairs_per_image", "colmap.cell_size", "colmap.max_error",
-    "colmap.max_epipolar_error", "colmap.tri_min_angle_deg", "colmap.fuse_voxel_px", "colmap.fuse_std_ratio",
-)
+USER_KEYS: tuple[str, ...] = tuple(key for key, _ in _user_fields(Config()))
+#: Each user setting's field (its metadata: doc, unit, range, choices, why).
+USER_FIELDS: dict[str, dataclasses.Field] = dict(_user_fields(Config()))
 
 #: ``dense.method = "paper"``: the sequential DP as close to the paper as the pipeline
 #: allows: one epipolar line at a time (no neighbour lines), one direction, matches only
@@ -332,31 +446,30 @@ PAPER: tuple[str, ...] = (
 )
 
 
+def check_value(key: str, value: Any) -> Any:
+    """``value`` if ``key`` accepts it (a finite number in its range, one of its choices); else
+    :class:`InputError`, one line naming the key."""
+    f = USER_FIELDS.get(key)
+    rng = f.metadata["range"] if f is not None else _INTERNAL_RANGES.get(key)
+    choices = f.metadata["choices"] if f is not None else ()
+    if isinstance(value, float) and not math.isfinite(value):
+        raise InputError(f"config key {key}: expected a finite number, got {value!r}")
+    if choices and value not in choices:
+        raise InputError(f"config key {key}: one of {', '.join(choices)}, got {value!r}")
+    if rng is not None and not isinstance(value, bool) and isinstance(value, (int, float)) and not rng.holds(value):
+        raise InputError(f"config key {key}: must be {rng.text()}, got {value!r}")
+    return value
+
+
 def validate(cfg: Config) -> Config:
     """Check every value's range; raises :class:`InputError` naming the key."""
-    import math
-
     for sec in dataclasses.fields(cfg):
         sub = getattr(cfg, sec.name)
         for f in dataclasses.fields(sub):
-            key = f"{sec.name}.{f.name}"
-            value = getattr(sub, f.name)
-            if isinstance(value, float) and not math.isfinite(value):
-                raise InputError(f"config key {key}: expected a finite number, got {value!r}")
-            if key in _CHOICES and value not in _CHOICES[key]:
-                raise InputError(f"config key {key}: one of {', '.join(_CHOICES[key])}, got {value!r}")
-            if key not in _LIMITS or isinstance(value, bool) or not isinstance(value, (int, float)):
-                continue
-            low, high, low_open = _LIMITS[key]
-            too_low = low is not None and (value < low or (low_open and value == low))
-            if too_low or (high is not None and value > high):
-                lo_txt = "" if low is None else f"{'>' if low_open else '>='} {low:g}"
-                hi_txt = "" if high is None else f"<= {high:g}"
-                rng = " and ".join(t for t in (lo_txt, hi_txt) if t)
-                raise InputError(f"config key {key}: must be {rng}, got {value!r}")
-    if 0 < cfg.output.max_size < MIN_MAX_SIZE:
-        raise InputError(f"config key output.max_size: must be 0 (never downscale) or at least {MIN_MAX_SIZE} px, "
-                         f"got {cfg.output.max_size}")
+            check_value(f"{sec.name}.{f.name}", getattr(sub, f.name))
+    if cfg.geometry.min_inliers > cfg.sift.max_features:
+        raise InputError(f"config key geometry.min_inliers: must be <= sift.max_features ({cfg.sift.max_features}): "
+                         f"no more inliers than features can be found, got {cfg.geometry.min_inliers}")
     return cfg
 
 

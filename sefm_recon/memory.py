@@ -19,8 +19,8 @@ def keep_freed_memory() -> bool:
     By default glibc maps every allocation above its mmap threshold (at most
     32 MB) afresh and unmaps it when freed, so each large temporary array
     (millions of matches) pays a page fault per 4 KiB page on first touch.
-    The matcher makes dozens of them per pair: on the 2-core test machine
-    this took 17 % of the matching time of a 2000x1500 pair (README, speed).
+    The matcher makes dozens of them per pair, and on large pairs those page
+    faults are a sizeable share of the matching time.
     With mmap off and no trimming, freed memory stays in the process and is
     reused; the resident size stays at its peak until the process exits,
     which suits a command that runs one job and ends.

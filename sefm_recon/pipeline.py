@@ -186,7 +186,11 @@ def _mesh(result: PairResult, cfg: Config):
 
 
 def build_report(result: PairResult, cfg: Config, names: tuple[str, str]) -> dict:
-    """The ``report.json`` contents (see CONTRACT.md)."""
+    """The ``report.json`` contents.
+
+    Its keys are part of the contract with users: the README's "Command line" and
+    "Output files" sections; a change here changes them too.
+    """
     from .io.cameras import camera_to_string as cts
 
     return {

@@ -56,7 +56,7 @@ def voxel_downsample_to(pcd, max_points: int, max_iter: int = 6):
     if down.has_normals():
         nrm = np.asarray(down.normals)
         nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-12)
-    log.info("voxel downsample %d -> %d points (voxel %.4g)", n, len(down.points), voxel)
+    log.debug("voxel downsample %d -> %d points (voxel %.4g)", n, len(down.points), voxel)
     return down, voxel
 
 
@@ -141,7 +141,7 @@ def poisson_mesh(
             pcd, depth=int(depth), n_threads=int(n_threads)
         )
     dens = np.asarray(dens)
-    log.info(
+    log.debug(
         "Poisson depth %d on %d points: %d vertices, %d triangles in %.2f s",
         depth, len(pcd.points), len(mesh.vertices), len(mesh.triangles),
         time.perf_counter() - t0,
