@@ -100,7 +100,9 @@ def build_parser() -> argparse.ArgumentParser:
                     help="generated scenes: randomised textures, photometry and motion, or the old textured "
                          "noise-free family")
     ev.add_argument("--ablation", action="store_true",
-                    help="instead: SeFM with each stage switched off in turn, on the generated scenes")
+                    help="instead: the matcher with each stage switched off in turn (the DP's with --set "
+                         "dense.method=sefm), with StereoSGBM and DIS, on the generated scenes or with --real "
+                         "on the real pairs")
     ev.add_argument("--pose", choices=["true", "estimated"], default="true", help="with --ablation: the pose used")
     ev.add_argument("--json", metavar="FILE", help="write the rows as JSON")
     ev.add_argument("--results", nargs="+", metavar="MARKDOWN",
@@ -204,12 +206,22 @@ def _cmd_eval(args) -> int:
     if not args.verbose:  # one progress line per pair, not the pipeline's own lines
         logging.getLogger("sefm_recon").setLevel(logging.WARNING)
         logging.getLogger("sefm_recon.eval_tables").setLevel(logging.ERROR if args.quiet else logging.INFO)
-    if args.ablation:
+    if args.ablation and args.real is not None:
+        from .io.real_gt import DEFAULT_REAL_GT
+
+        et.warm_up()
+        root = args.real or DEFAULT_REAL_GT
+        rows = et.ablation_table(et.real_cases(root, args.variants), args.pose, args.overrides)
+        main, extra = "ablation-real", {}
+        text = (f"SeFM ablation, mean over the real pairs in {', '.join(args.variants or ('rect', 'unrect', 'conv'))} "
+                f"({args.pose} pose), with the peers on the same pairs:\n\n" + et.format_ablation_table(rows))
+    elif args.ablation:
         w, h = _size(args.size)
-        rows = et.ablation_table(args.seeds, (w, h), args.pose, args.overrides, args.style)
+        rows = et.ablation_table(et.generated_cases(args.seeds, (w, h), args.style), args.pose, args.overrides)
         main, extra = "ablation", {}
         text = (f"SeFM ablation, mean over generated seeds {' '.join(map(str, args.seeds))} ({args.style}, "
-                f"{w}x{h}, {args.pose} pose):\n\n" + et.format_ablation_table(rows))
+                f"{w}x{h}, {args.pose} pose), with the peers on the same scenes:\n\n"
+                + et.format_ablation_table(rows))
     elif args.real is not None:
         from .io.real_gt import DEFAULT_REAL_GT
 

@@ -7,8 +7,9 @@ types and values out of range are input errors. Each user setting is declared wi
 ``scripts/write_default_config.py`` writes them out as ``configs/default.toml`` and
 ``docs/configuration.md``.
 
-The other fields (the ``lines``, ``rough``, ``pyramid`` and ``validity`` sections and
-most of ``dense``) are the internal constants of the sequential DP matcher
+The other fields are internal: the ``sgm`` section switches the default matcher's
+stages for the ablation; the ``lines``, ``rough``, ``pyramid`` and ``validity`` sections
+and most of ``dense`` are the constants of the sequential DP matcher
 (``dense.method = "sefm"``; ``"paper"`` sets them as the paper has them,
 :data:`PAPER`). They are not settings: only the evaluation and the tests change them
 (``load_config(..., internal=True)``), to measure what each stage adds.
@@ -217,6 +218,21 @@ class DenseConfig:
 
 
 @dataclass
+class SgmConfig:
+    """Switches of the default matcher's stages (``dense.method = "sgm"``), for the ablation:
+    internal, only the evaluation and the tests change them (:mod:`.matching.sgm`)."""
+
+    all_paths: bool = True  #: 8 paths where the cost volume fits (false: always OpenCV's 3 directions)
+    lr_check: bool = True  #: left-right consistency within one column
+    uniqueness: int = 10  #: best cost this many percent below the second best (0 = off)
+    speckle: bool = True  #: drop small islands of disparity (OpenCV's speckle filter)
+    sift_range: bool = True  #: search the SIFT inliers' parallax (false: their depths x2 and /2)
+    range_margin: float = 0.25  #: the parallax range widened by this share of its span on each side
+    bicubic: bool = True  #: bicubic line images (false: bilinear)
+    interpolate: bool = True  #: read disparities back interpolated over the surface (false: nearest cell)
+
+
+@dataclass
 class ValidityConfig:
     sv_max_unmatched: int = 2  #: S_v: unmatched strong key points allowed inside a segment
     sv_strength: float = 2.0  #: ...where "strong" is a jump of this many thresholds
@@ -320,6 +336,7 @@ class Config:
     rough: RoughConfig = field(default_factory=RoughConfig)
     pyramid: PyramidConfig = field(default_factory=PyramidConfig)
     dense: DenseConfig = field(default_factory=DenseConfig)
+    sgm: SgmConfig = field(default_factory=SgmConfig)
     validity: ValidityConfig = field(default_factory=ValidityConfig)
     output: OutputConfig = field(default_factory=OutputConfig)
     colmap: ColmapConfig = field(default_factory=ColmapConfig)
@@ -363,7 +380,7 @@ def _apply(cfg: Config, section: str, key: str, value: Any, internal: bool = Fal
     types = {f.name: f.type for f in dataclasses.fields(sub)}
     user = [k.split(".")[1] for k in USER_KEYS if k.startswith(section + ".")]
     if key not in types or (not internal and f"{section}.{key}" not in USER_KEYS):
-        known = ", ".join(user) or "none: its keys are internal constants of the sequential DP matcher"
+        known = ", ".join(user) or "none: its keys are internal constants of the matchers"
         raise InputError(f"unknown config key {section}.{key} (keys: {known})")
     kind = {"int": int, "float": float, "bool": bool, "str": str}[types[key]] if isinstance(types[key], str) else types[key]
     setattr(sub, key, _coerce(value, kind, f"{section}.{key}"))
@@ -420,6 +437,8 @@ _INTERNAL_RANGES: dict[str, Range] = {key: Range(low, high, low_open) for key, (
     "validity.sp_min_run": (1, None, False),
     "validity.max_cost": (0, None, False),
     "validity.min_tri_angle_deg": (0, 90, False),
+    "sgm.uniqueness": (0, 100, False),
+    "sgm.range_margin": (0, 4, False),
 }.items()}
 
 

@@ -46,7 +46,21 @@ SGBM_MARGIN_PX = 8.0
 #: Motion kinds of the generated table, taken in turn over the seeds.
 MOTIONS = ("lateral", "converging", "forward", "zoom")
 
-#: Ablation rows: each removes (or, marked +, adds) one stage beyond the paper.
+#: Ablation rows of the default matcher (``dense.method = "sgm"``): each switches one stage
+#: off, or back to the simpler choice in brackets.
+SGM_ABLATIONS: dict[str, list[str]] = {
+    "SGM over polar line images, all stages (default)": [],
+    "- 8 aggregation paths (OpenCV's 3 directions)": ["sgm.all_paths=false"],
+    "- left-right check": ["sgm.lr_check=false"],
+    "- uniqueness test": ["sgm.uniqueness=0"],
+    "- speckle filter": ["sgm.speckle=false"],
+    "- search range from the SIFT parallax (their depths x2 and /2)": ["sgm.sift_range=false"],
+    "- range margin of a quarter span (8 columns)": ["sgm.range_margin=0"],
+    "- bicubic line images (bilinear)": ["sgm.bicubic=false"],
+    "- interpolated read-back at each pixel (nearest cell)": ["sgm.interpolate=false"],
+}
+
+#: Ablation rows of the sequential DP: each removes (or, marked +, adds) one stage beyond the paper.
 ABLATIONS: dict[str, list[str]] = {
     "SeFM, all stages (default)": [],
     "paper only (1-D lines, strict S_v, no extras)": [
@@ -231,6 +245,17 @@ def real_table(root, variants=None, pairs=None, methods: Iterable[str] = METHODS
     return rows
 
 
+def real_cases(root, variants=None):
+    """Every real pair under ``root`` in every variant, as cases (read one pair at a time)."""
+    from .io.real_gt import list_pairs, load_pair
+    from .realgt import VARIANTS, make_case
+
+    for folder in list_pairs(root):
+        pair = load_pair(folder)
+        for variant in variants or VARIANTS:
+            yield make_case(pair, variant)
+
+
 def generated_table(seeds, size=(1000, 750), methods: Iterable[str] = METHODS, overrides: Iterable[str] = (),
                     style: str = "random") -> list[dict]:
     """Rows of :func:`run_case` for generated scenes; the motion kinds are taken in turn."""
@@ -292,17 +317,24 @@ def format_rows(rows: list[dict], what: str = "pair") -> str:
     return "\n".join(lines)
 
 
-def ablation_table(seeds, size=(1000, 750), pose="true", overrides=(), style: str = "random") -> list[dict]:
-    """Mean metrics of SeFM over generated scenes with each stage switched off (or on) in turn."""
-    cases = list(generated_cases(seeds, size, style))
+def ablation_table(cases, pose="true", overrides=(), peers: bool = True) -> list[dict]:
+    """Mean metrics of SeFM over ``cases`` with each stage switched off (or on) in turn:
+    the default matcher's stages (:data:`SGM_ABLATIONS`), or the DP's (:data:`ABLATIONS`)
+    when ``overrides`` select it; then, with ``peers``, StereoSGBM and DIS on the same cases."""
+    cases = list(cases)
     covs = [c.covisible() for c in cases]
+    method = load_config(None, list(overrides), internal=True).dense.method
+    runs = {name: (lambda c, extra=extra: _sefm(c, [*overrides, *extra], own_pose=pose != "true"))
+            for name, extra in (SGM_ABLATIONS if method == "sgm" else ABLATIONS).items()}
+    if peers:
+        runs |= {"StereoSGBM (true rectification, the peer)": _sgbm, "DIS optical flow (the peer)": _dis}
     rows = []
-    for name, extra in ABLATIONS.items():
+    for name, run in runs.items():
         ms = []
         for case, cov in zip(cases, covs):
             t0 = time.perf_counter()
             try:
-                uv1, uv2 = _sefm(case, [*overrides, *extra], own_pose=pose != "true")
+                uv1, uv2 = run(case)
             except InputError:
                 uv1 = uv2 = np.zeros((0, 2))
             ms.append({**score_case(case, uv1, uv2, cov), "seconds": time.perf_counter() - t0})

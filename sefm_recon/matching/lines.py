@@ -121,14 +121,16 @@ def project(K: np.ndarray, Rc: np.ndarray, r: np.ndarray):
         return p[..., 0] / z, p[..., 1] / z, z > 1e-9
 
 
-def line_images(img1: np.ndarray, img2: np.ndarray, tv: TwoView, grid: LineGrid, width: int, shift2: int = 0):
-    """Both images resampled (bicubic) onto the grid's rows and ``width`` columns,
+def line_images(img1: np.ndarray, img2: np.ndarray, tv: TwoView, grid: LineGrid, width: int, shift2: int = 0,
+                bicubic: bool = True):
+    """Both images resampled (bicubic, else bilinear) onto the grid's rows and ``width`` columns,
     image 2's shifted: its column ``c`` holds the grid's column ``c - shift2``, so that a
     match ``x2 = x1 - d`` lies at ``x1 - (d - shift2)`` in the line images.
 
     Returns ``(L1, L2)``, each (rows, width[, channels]) of the input dtype; cells
     whose ray leaves an image or points behind it are 0.
     """
+    interpolation = cv2.INTER_CUBIC if bicubic else cv2.INTER_LINEAR
     out = []
     for img, K, Rc, shift in ((img1, tv.K1, np.eye(3), 0), (img2, tv.K2, tv.R.T, shift2)):
         alpha = grid.alpha(np.arange(width) - shift)
@@ -140,6 +142,6 @@ def line_images(img1: np.ndarray, img2: np.ndarray, tv: TwoView, grid: LineGrid,
             # less than bilinear where samples fall between pixels (real pairs: +0.004 at 1 px).
             mx = np.where(front, u - 0.5, -1e4).astype(np.float32)
             my = np.where(front, v - 0.5, -1e4).astype(np.float32)
-            L[r0:r0 + len(phi)] = cv2.remap(img, mx, my, cv2.INTER_CUBIC, borderMode=cv2.BORDER_CONSTANT)
+            L[r0:r0 + len(phi)] = cv2.remap(img, mx, my, interpolation, borderMode=cv2.BORDER_CONSTANT)
         out.append(L)
     return out[0], out[1]

@@ -29,30 +29,29 @@ from ..geometry.epipolar import ray_angles
 from ..geometry.triangulate import triangulate
 from ..geometry.two_view import TwoView
 from .lines import LineGrid, line_grid, line_images, pixel_grid
-from .sefm import DenseMatches
+from .sefm import DenseMatches, depth_range
 
 logger = logging.getLogger(__name__)
 
 __all__ = ["match_pair_sgm", "parallax_columns", "pixel_matches"]
 
 #: StereoSGBM's settings, those of the evaluation's planar SGBM peer: 5x5 blocks, OpenCV's
-#: recommended smoothness penalties P1 = 8 C B^2 and P2 = 32 C B^2 (C channels),
-#: uniqueness 10 %, speckle filter over windows of 100 px within 2 disparities, and
-#: a left-right check within 1 disparity. (3x3 blocks gained 0.005-0.01 on the real pairs
-#: but lost 0.02-0.09 on the noisier generated scenes.)
+#: recommended smoothness penalties P1 = 8 C B^2 and P2 = 32 C B^2 (C channels), a speckle
+#: filter over windows of 100 px within 2 disparities, and a left-right check within 1
+#: disparity; the uniqueness margin and the switches of the ablation are in ``cfg.sgm``.
+#: (3x3 blocks gained 0.005-0.01 on the real pairs but lost 0.02-0.09 on the noisier
+#: generated scenes.)
 BLOCK = 5
-UNIQUENESS = 10
 SPECKLE_WINDOW = 100
 SPECKLE_RANGE = 2
 LR_MAX_DIFF = 1
 #: Full 8-path aggregation (OpenCV's MODE_HH) keeps the whole cost volume, about 4 bytes a
 #: cell: it is used up to this many cells (1 GB), the 3-direction mode (rows of the volume
-#: only) above. On the real pairs 8 paths gave +0.015 precision and coverage at 1 px.
+#: only) above.
 MAX_FULL_VOLUME = 250_000_000
-#: The parallax of the SIFT inliers is searched widened by this share of its span on each
-#: side (surfaces nearer or farther than every SIFT point), and by at least
-#: ``MARGIN_COLUMNS``, the evaluation's SGBM peer's margin of 8 px.
-RANGE_MARGIN = 0.25
+#: The parallax range is widened by ``cfg.sgm.range_margin`` of its span on each side
+#: (surfaces nearer or farther than every SIFT point), and by at least this many columns,
+#: the evaluation's SGBM peer's margin of 8 px.
 MARGIN_COLUMNS = 8
 #: SIFT depth ranges are sampled over image 1 on a grid this coarse (px).
 _GRID_PX = 8.0
@@ -85,22 +84,27 @@ def parallax_columns(tv: TwoView, grid: LineGrid, size1: tuple[int, int], distan
     return float(d.min()), float(d.max())
 
 
-def search_range(tv: TwoView, grid: LineGrid, size1: tuple[int, int]) -> tuple[float, float]:
+def search_range(tv: TwoView, grid: LineGrid, size1: tuple[int, int], margin: float = 0.25,
+                 sift_parallax: bool = True) -> tuple[float, float]:
     """(lo, hi) columns of parallax to search: the SIFT inliers' own column differences
-    (1st-99th percentile), widened on each side by :data:`RANGE_MARGIN` of their span and
-    at least :data:`MARGIN_COLUMNS`. With fewer than 8 inliers, all scene points from a
-    fifth of the baseline to infinity.
+    (1st-99th percentile), widened on each side by ``margin`` of their span and at least
+    :data:`MARGIN_COLUMNS`. With fewer than 8 inliers, all scene points from a fifth of
+    the baseline to infinity.
 
-    A margin in parallax rather than in depth: on the generated scenes the depth margin
-    (x2 / 2) widened the search 2-4 fold and cost 0.09 of coverage at 1 px.
+    A margin in parallax rather than in depth (``sift_parallax=False``: the parallax of
+    the SIFT points' depths, halved and doubled): the depth margin widens the search 2-4
+    fold on the generated scenes.
     """
     if len(tv.kp1) < 8:
         return parallax_columns(tv, grid, size1, (0.2 * float(np.linalg.norm(tv.t)), float("inf")))
+    if not sift_parallax:
+        dmin, dmax = depth_range(tv, 2.0)
+        return parallax_columns(tv, grid, size1, (dmin, dmax))
     _, a1 = ray_angles(tv.K1, np.eye(3), grid.basis, tv.kp1)
     _, a2 = ray_angles(tv.K2, tv.R.T, grid.basis, tv.kp2)
     d = grid.column(a1) - grid.column(a2)
     lo, hi = np.percentile(d, [1, 99])
-    m = max(MARGIN_COLUMNS, RANGE_MARGIN * (hi - lo))
+    m = max(MARGIN_COLUMNS, margin * (hi - lo))
     return float(lo - m), float(hi + m)
 
 
@@ -115,6 +119,7 @@ class GridScalars(NamedTuple):
     pad: float
     edge: float
     min_disparity: float  #: disparities below this are invalid
+    interpolate: bool  #: over the cells on the nearest one's surface (else the nearest cell's)
 
 
 @njit(parallel=True, cache=True)
@@ -124,8 +129,8 @@ def _read_back(disp, row_of, g, basis, P2, w2, h2, phi, alpha, uv2, row):
     cell's surface, and the position in image 2 of the ray at that parallax in the
     pixel's own half-plane. Writes ``uv2`` (N, 2) and ``row`` (N,) (-1: no match).
 
-    The valid cell of the four nearest the pixel sets the surface (the pixel is
-    unmatched when none is valid). ``row_of`` (S,) maps uniform row slots to rows of
+    The cell nearest the pixel sets the surface (the pixel is unmatched when it is
+    invalid: the matcher's checks rejected it). ``row_of`` (S,) maps uniform row slots to rows of
     ``disp`` (-1: slot not kept);
     ``P2`` (3, 3) = ``K2 R`` projects camera-1-axes rays into image 2.
     """
@@ -159,18 +164,13 @@ def _read_back(disp, row_of, g, basis, P2, w2, h2, phi, alpha, uv2, row):
                 r1 = row_of[k0 + 1]
         c0 = int(np.floor(c))
         wc = c - c0
-        # the four cells around the pixel: the valid one nearest it sets the surface
-        best = -1.0
-        dn = 0.0
-        for j in range(4):
-            rr = r0 if j < 2 else r1
-            cc = c0 + (j & 1)
-            w = (1.0 - wk if j < 2 else wk) * (1.0 - wc if (j & 1) == 0 else wc)
-            if rr >= 0 and 0 <= cc < W and disp[rr, cc] >= g.min_disparity and w > best:
-                best = w
-                dn = disp[rr, cc]
-        if best < 0.0:
+        # the cell nearest the pixel sets the surface: where the matcher rejected it
+        # (left-right check, uniqueness, speckle), the pixel stays unmatched
+        rn = r0 if wk < 0.5 else r1
+        cn = c0 + (1 if wc >= 0.5 else 0)
+        if rn < 0 or cn < 0 or cn >= W or disp[rn, cn] < g.min_disparity:
             continue
+        dn = disp[rn, cn]
         num = 0.0
         den = 0.0
         for j in range(4):
@@ -183,7 +183,7 @@ def _read_back(disp, row_of, g, basis, P2, w2, h2, phi, alpha, uv2, row):
             if v >= g.min_disparity and abs(v - dn) <= SAME_SURFACE_COLUMNS:
                 num += w * v
                 den += w
-        d = num / den if den > 0.0 else dn
+        d = num / den if den > 0.0 and g.interpolate else dn
         a2 = 2.0 * np.arctan(np.exp(g.u_max - (c - d - g.pad) * g.u_step))
         cp, sp = np.cos(phi[i]), np.sin(phi[i])
         ca, sa = np.cos(a2), np.sin(a2)
@@ -199,20 +199,20 @@ def _read_back(disp, row_of, g, basis, P2, w2, h2, phi, alpha, uv2, row):
             continue
         uv2[i, 0] = u
         uv2[i, 1] = v
-        row[i] = r0 if wk < 0.5 and r0 >= 0 else (r1 if r1 >= 0 else r0)
+        row[i] = rn
 
 
 def pixel_matches(disp: np.ndarray, min_disparity: float, grid: LineGrid, tv: TwoView,
-                  size1: tuple[int, int], size2: tuple[int, int]):
+                  size1: tuple[int, int], size2: tuple[int, int], interpolate: bool = True):
     """One match per pixel of image 1 from a disparity map of the line images.
 
     ``disp`` (rows, width) float32 disparities in columns (``x2 = x1 - d``), invalid
     below ``min_disparity``. Each pixel centre's ray gives its fractional row and
     column; the disparity there is interpolated over the four cells around it that lie
-    on the surface of the nearest valid one (within :data:`SAME_SURFACE_COLUMNS`), and the match is the
+    on the surface of the nearest one (within :data:`SAME_SURFACE_COLUMNS`), and the match is the
     ray at that parallax in the pixel's own half-plane, so it lies exactly on the
-    pixel's epipolar line. Pixels nearer an epipole than ``grid.edge``, among four invalid
-    cells, or whose match leaves image 2 get none.
+    pixel's epipolar line. Pixels nearer an epipole than ``grid.edge``, whose nearest cell
+    is invalid, or whose match leaves image 2 get none.
 
     Returns ``(uv1, uv2, rows)``: (N, 2) COLMAP positions and (N,) rows of the line images.
     """
@@ -222,7 +222,7 @@ def pixel_matches(disp: np.ndarray, min_disparity: float, grid: LineGrid, tv: Tw
     row_of = np.full(slots if full else k[-1] + 1, -1, np.int64)
     row_of[k] = np.arange(len(k))
     g = GridScalars(float(grid.phi[0]), float(grid.phi_step), bool(full), float(grid.u_max), float(grid.u_step),
-                    float(grid.pad), float(grid.edge), float(min_disparity))
+                    float(grid.pad), float(grid.edge), float(min_disparity), bool(interpolate))
     P2 = np.ascontiguousarray(tv.K2 @ tv.R)
     basis = np.ascontiguousarray(grid.basis, np.float64)
     w, h = size1
@@ -262,29 +262,31 @@ def match_pair_sgm(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config,
     grid = line_grid(tv, size1, size2, cfg.lines.max_lines)
     if len(grid.phi) == 0:
         raise InputError("no epipolar line crosses both images: with this geometry the views do not overlap")
-    lo, hi = search_range(tv, grid, size1)
+    opt = cfg.sgm
+    lo, hi = search_range(tv, grid, size1, opt.range_margin, opt.sift_range)
     min_d = int(math.floor(lo - MARGIN_COLUMNS))
     num_d = int(math.ceil((hi - lo + 2 * MARGIN_COLUMNS + 1) / 16.0)) * 16  # OpenCV: a multiple of 16
     # Image 2's line image is shifted by min_d, so that OpenCV searches 0..num_d; the pad
     # left of image 1's columns holds the search window of its first columns.
     grid.pad = num_d + 1
     width = grid.pad + grid.columns + 1
-    L1, L2 = line_images(img1, img2, tv, grid, width, shift2=min_d)
+    L1, L2 = line_images(img1, img2, tv, grid, width, shift2=min_d, bicubic=opt.bicubic)
     timings["line_pairs"] = time.perf_counter() - t0
     logger.info("line images %dx%d, parallax %d..%d columns", width, len(grid.phi), min_d, min_d + num_d)
 
     t0 = time.perf_counter()
     cn = L1.shape[2] if L1.ndim == 3 else 1
-    full = L1.shape[0] * L1.shape[1] * num_d <= MAX_FULL_VOLUME
+    full = opt.all_paths and L1.shape[0] * L1.shape[1] * num_d <= MAX_FULL_VOLUME
     sgbm = cv2.StereoSGBM_create(minDisparity=0, numDisparities=num_d, blockSize=BLOCK,
-                                 P1=8 * cn * BLOCK**2, P2=32 * cn * BLOCK**2, disp12MaxDiff=LR_MAX_DIFF,
-                                 uniquenessRatio=UNIQUENESS, speckleWindowSize=SPECKLE_WINDOW,
+                                 P1=8 * cn * BLOCK**2, P2=32 * cn * BLOCK**2,
+                                 disp12MaxDiff=LR_MAX_DIFF if opt.lr_check else -1, uniquenessRatio=opt.uniqueness,
+                                 speckleWindowSize=SPECKLE_WINDOW if opt.speckle else 0,
                                  speckleRange=SPECKLE_RANGE,
                                  mode=cv2.STEREO_SGBM_MODE_HH if full else cv2.STEREO_SGBM_MODE_SGBM_3WAY)
     disp = sgbm.compute(L1, L2).astype(np.float32) / 16.0 + min_d  # fixed point, 4 fractional bits; invalid: -1
     del L1, L2
     n_dense = int(np.count_nonzero(disp >= min_d))
-    uv1, uv2, rows = pixel_matches(disp, min_d, grid, tv, size1, size2)
+    uv1, uv2, rows = pixel_matches(disp, min_d, grid, tv, size1, size2, opt.interpolate)
     del disp
     X, valid, _ = triangulate(tv.K1, tv.K2, tv.R, tv.t, uv1, uv2)
     keep = np.flatnonzero(valid)
