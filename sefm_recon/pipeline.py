@@ -181,6 +181,8 @@ def _mesh(result: PairResult, cfg: Config):
     if result.normals is None or len(result.xyz) < 100:
         logger.warning("too few points (%d) for a mesh: mesh.ply not written", len(result.xyz))
         return None
+    # open3d holds the interpreter for the whole Poisson solve: a Ctrl-C takes effect when it ends.
+    logger.info("meshing %d points (Ctrl-C stops the run once the mesh is done)", len(result.xyz))
     return poisson_mesh(result.xyz, result.normals, result.rgb, depth=cfg.output.poisson_depth,
                         density_quantile=cfg.output.density_quantile, max_points=cfg.output.mesh_max_points)
 

@@ -35,6 +35,7 @@ import sys
 from pathlib import Path
 from typing import Iterable
 
+from .. import interrupt
 from ..errors import InputError
 
 logger = logging.getLogger(__name__)
@@ -172,6 +173,7 @@ class StagedOutput:
         assert self.stage is not None
         try:
             if exc_type is None:
+                interrupt.check()  # a Ctrl-C that a library swallowed still stops the run here
                 self._commit()
         finally:
             shutil.rmtree(self.stage, ignore_errors=True)
