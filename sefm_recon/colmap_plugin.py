@@ -40,6 +40,7 @@ import numpy as np
 from . import __version__
 from .config import Config
 from .errors import InputError
+from .io.colmap_model import MODEL_FILES
 
 logger = logging.getLogger(__name__)
 
@@ -58,6 +59,8 @@ MODEL_STEMS = ("cameras", "images")
 #: What ``sefm-recon colmap`` writes into OUT; with ``--overwrite`` these are
 #: replaced, everything else in OUT is kept.
 COLMAP_RESULTS = ("pairs", "fused.ply", "database.db", "sparse", "report.json")
+#: Inside those folders, the files it writes; with ``--overwrite`` the user's other files there are kept.
+COLMAP_OWNED = {"pairs": ("*/matches.npz", "*/points.ply"), "sparse": MODEL_FILES}
 
 
 # ---------------------------------------------------------------------------- workspace
@@ -602,7 +605,7 @@ def run_colmap(
                 rec.num_points3D(), len(tasks), how,
                 f"on the Dask cluster at {scheduler}" if scheduler else f"with {n_workers} worker(s)")
 
-    with StagedOutput(out, overwrite, results=COLMAP_RESULTS) as stage:
+    with StagedOutput(out, overwrite, results=COLMAP_RESULTS, owned=COLMAP_OWNED) as stage:
         (stage / "pairs").mkdir()
         t0 = time.perf_counter()
         results: dict[int, dict] = {}

@@ -240,7 +240,7 @@ def run_pair(
     pose: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> dict:
     """``sefm-recon pair``: read, reconstruct, write into ``out`` atomically; returns the report."""
-    from .io.output import PAIR_RESULTS, StagedOutput, check_output_dir
+    from .io.output import PAIR_OWNED, PAIR_RESULTS, StagedOutput, check_output_dir
 
     check_output_dir(out, overwrite)  # fail before the long work, not after
     t0 = time.perf_counter()
@@ -254,7 +254,7 @@ def run_pair(
         )
     cam1, cam2, sources = resolve_cameras(image1, image2, img1, img2, camera, camera2)
     result = reconstruct_pair(img1, img2, cam1, cam2, cfg, pose=pose, progress=progress, names=names)
-    with StagedOutput(out, overwrite, results=PAIR_RESULTS) as stage:
+    with StagedOutput(out, overwrite, results=PAIR_RESULTS, owned=PAIR_OWNED) as stage:
         report = write_pair_outputs(result, cfg, stage, (Path(image1).name, Path(image2).name))
         report["camera_sources"] = sources
         report["timings_s"]["total"] = round(time.perf_counter() - t0, 4)

@@ -110,3 +110,106 @@ def test_signal_during_a_numba_kernel_exits_130_and_leaves_nothing(pair, tmp_pat
     assert err.strip().splitlines()[-1] == "sefm-recon: interrupted", err
     assert "SystemError" not in err and "Traceback" not in err
     assert not out.exists() and hidden(tmp_path) == []
+
+
+# ------------------------------------------------------ 2. OUT on another file system
+
+
+@pytest.fixture
+def tmpfs(tmp_path):
+    """Mount a tmpfs of the given size in MB at a new folder under tmp_path; unmounted afterwards."""
+    mounted = []
+
+    def mount(size_mb: float, name: str = "mnt") -> Path:
+        if os.geteuid() != 0 or shutil.which("mount") is None:
+            pytest.skip("mounting a tmpfs needs root and mount(8)")
+        point = tmp_path / name
+        point.mkdir()
+        r = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={int(size_mb * 1024)}k", "tmpfs", str(point)],
+                           capture_output=True, text=True)
+        if r.returncode != 0:
+            pytest.skip(f"cannot mount a tmpfs here: {r.stderr.strip()}")
+        mounted.append(point)
+        return point
+
+    yield mount
+    for point in mounted:
+        subprocess.run(["umount", "-l", str(point)], capture_output=True)
+
+
+def test_pair_into_a_mounted_out(pair, tmpfs):
+    """OUT is a mount point (a Docker volume, a tmpfs): the staging folder lives on OUT's file system."""
+    out = tmpfs(64)
+    r = cli(*pair_args(pair, out, "--set", "output.mesh=false"))
+    assert r.returncode == 0, r.stderr
+    assert {"matches.npz", "points.ply", "sparse", "report.json"} <= {p.name for p in out.iterdir()}
+    assert hidden(out) == [] and hidden(out.parent) == []
+    # again with --overwrite: the old results are replaced in place, the user's file is kept
+    (out / "mine.txt").write_text("mine")
+    r = cli(*pair_args(pair, out, "--set", "output.mesh=false", "--overwrite"))
+    assert r.returncode == 0, r.stderr
+    assert (out / "mine.txt").read_text() == "mine" and (out / "report.json").is_file()
+    assert hidden(out) == [] and hidden(out.parent) == []
+
+
+def test_colmap_into_a_mounted_out(tmpfs):
+    out = tmpfs(64)
+    r = cli("colmap", str(ROOT / "data_samples" / "scene"), "-o", str(out), "-q")
+    assert r.returncode == 0, r.stderr
+    assert {"pairs", "fused.ply", "database.db", "sparse", "report.json"} <= {p.name for p in out.iterdir()}
+    assert hidden(out) == [] and hidden(out.parent) == []
+
+
+# ------------------------------------------------------ 8. -o "" and --overwrite
+
+
+def test_empty_output_name_is_refused(pair, tmp_path):
+    r = cli(*pair_args(pair, ""), cwd=tmp_path)
+    assert r.returncode == 2, r.stderr
+    assert r.stderr.strip().splitlines() == [r.stderr.strip()] and "output folder is an empty name" in r.stderr
+    assert list(tmp_path.iterdir()) == []
+    r = cli("colmap", str(ROOT / "data_samples" / "scene"), "-o", "", "-q", cwd=tmp_path)
+    assert r.returncode == 2 and "output folder is an empty name" in r.stderr, r.stderr
+
+
+def test_overwrite_keeps_the_users_files_inside_sparse(pair, tmp_path):
+    out = tmp_path / "out"
+    assert cli(*pair_args(pair, out, "--set", "output.mesh=false")).returncode == 0
+    old_points = (out / "sparse" / "points3D.bin").read_bytes()
+    (out / "sparse" / "notes.txt").write_text("mine")
+    (out / "sparse" / "0").mkdir()
+    (out / "sparse" / "0" / "cameras.txt").write_text("my own model")
+    (out / "sparse" / "empty").mkdir()
+    r = cli(*pair_args(pair, out, "--set", "output.mesh=false", "--set", "output.sparse_max_points=500",
+                       "--overwrite"))
+    assert r.returncode == 0, r.stderr
+    assert (out / "sparse" / "points3D.bin").read_bytes() != old_points  # the model is the new one
+    assert (out / "sparse" / "notes.txt").read_text() == "mine"
+    assert (out / "sparse" / "0" / "cameras.txt").read_text() == "my own model"
+    assert (out / "sparse" / "empty").is_dir()
+    assert hidden(out) == [] and hidden(tmp_path) == []
+
+
+@pytest.mark.parametrize("swap", ["exchange", "per item"])
+def test_overwrite_keeps_the_users_files_inside_colmap_pairs(tmp_path, monkeypatch, swap):
+    """``colmap``'s result folders: a pair folder the new run does not write loses only the tool's files."""
+    from sefm_recon.colmap_plugin import COLMAP_OWNED, COLMAP_RESULTS
+    from sefm_recon.io.output import StagedOutput
+
+    out = tmp_path / "out"
+    for rel in ("pairs/a__b/matches.npz", "pairs/a__b/points.ply", "pairs/a__b/notes.txt",
+                "pairs/old__pair/matches.npz", "pairs/old__pair/points.ply", "pairs/old__pair/mine/x.txt",
+                "sparse/cameras.bin", "sparse/mine.db", "fused.ply", "report.json", "keep.txt"):
+        (out / rel).parent.mkdir(parents=True, exist_ok=True)
+        (out / rel).write_text("old")
+    if swap == "per item":
+        monkeypatch.chdir(out)  # the current folder is never renamed: results are moved one by one
+    with StagedOutput(out, overwrite=True, results=COLMAP_RESULTS, owned=COLMAP_OWNED) as stage:
+        for rel in ("pairs/a__b/matches.npz", "pairs/a__b/points.ply", "sparse/cameras.bin", "report.json"):
+            (stage / rel).parent.mkdir(parents=True, exist_ok=True)
+            (stage / rel).write_text("new")
+    files = {str(p.relative_to(out)): p.read_text() for p in out.rglob("*") if p.is_file()}
+    assert files == {"pairs/a__b/matches.npz": "new", "pairs/a__b/points.ply": "new", "pairs/a__b/notes.txt": "old",
+                     "pairs/old__pair/mine/x.txt": "old", "sparse/cameras.bin": "new", "sparse/mine.db": "old",
+                     "report.json": "new", "keep.txt": "old"}
+    assert hidden(out) == [] and hidden(tmp_path) == []
