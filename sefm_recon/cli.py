@@ -266,6 +266,9 @@ def main(argv: list[str] | None = None) -> int:
     if args.command is None:
         parser.print_help()
         return 2
+    for stream in (sys.stdout, sys.stderr):  # a path with bytes that are not UTF-8 is printed, not a crash
+        if hasattr(stream, "reconfigure"):
+            stream.reconfigure(errors="backslashreplace")
     _setup_logging(args.quiet, args.verbose)
     _terminate_as_interrupt()
     from .memory import keep_freed_memory

@@ -213,3 +213,31 @@ def test_overwrite_keeps_the_users_files_inside_colmap_pairs(tmp_path, monkeypat
                      "pairs/old__pair/mine/x.txt": "old", "sparse/cameras.bin": "new", "sparse/mine.db": "old",
                      "report.json": "new", "keep.txt": "old"}
     assert hidden(out) == [] and hidden(tmp_path) == []
+
+
+# ------------------------------------------------------ 6. bytes that are not UTF-8 in paths
+
+SAMPLE = ROOT / "data_samples" / "scene"
+
+
+def test_paths_with_bytes_that_are_not_utf8(tmp_path):
+    """``-o $'out\\xe9'`` crashed OpenCV's writer (exit 139); an image named so failed after the run (exit 1)."""
+    base = os.fsencode(tmp_path)
+    image2 = base + b"/view\xe9.jpg"
+    shutil.copy(SAMPLE / "images" / "view_001.jpg", os.fsdecode(image2))
+    out = base + b"/out\xe9"
+    r = subprocess.run([sys.executable, "-m", "sefm_recon", "pair", os.fsencode(SAMPLE / "images" / "view_000.jpg"),
+                        image2, "-o", out, "--camera", (SAMPLE / "camera.txt").read_text().strip(), "--max-size", "320",
+                        "--set", "output.poisson_depth=6"], capture_output=True, env=ENV, timeout=300)
+    assert r.returncode == 0, r.stderr.decode(errors="replace")
+    assert b"Traceback" not in r.stderr and b"matches" in r.stdout
+    folder = Path(os.fsdecode(out))
+    assert {p.name for p in folder.iterdir()} == {"matches.npz", "points.ply", "mesh.ply", "sparse", "matches.png",
+                                                  "report.json"}
+    assert hidden(tmp_path) == []
+    report = json.loads((folder / "report.json").read_text())
+    assert os.fsencode(report["images"][1]) == b"view\xe9.jpg"
+    assert b"view\xe9.jpg\x00" in (folder / "sparse" / "images.bin").read_bytes()  # COLMAP's name: the file's bytes
+    png = cv2.imdecode(np.fromfile(folder / "matches.png", np.uint8), cv2.IMREAD_COLOR)
+    assert png is not None and png.shape[0] > 100
+    assert len(np.load(folder / "matches.npz")["uv1"]) == report["counts"]["valid_matches"] > 10_000

@@ -63,6 +63,15 @@ def _copy_camera(camera: pycolmap.Camera, camera_id: int) -> pycolmap.Camera:
     return cam
 
 
+def _colmap_name(name: str) -> str | bytes:
+    """An image name for pycolmap: one that is not UTF-8 (a surrogate-escaped byte of a file name) as its bytes."""
+    try:
+        name.encode("utf-8")
+        return name
+    except UnicodeEncodeError:
+        return os.fsencode(name)
+
+
 def _check_rotation(R: np.ndarray) -> np.ndarray:
     R = np.asarray(R, dtype=np.float64)
     if R.shape != (3, 3):
@@ -89,8 +98,8 @@ def _build_reconstruction(
     rec = pycolmap.Reconstruction()
     rec.add_camera_with_trivial_rig(_copy_camera(camera1, 1))
     rec.add_camera_with_trivial_rig(_copy_camera(camera2, 2))
-    im1 = pycolmap.Image(name=str(name1), keypoints=uv1, camera_id=1, image_id=1)
-    im2 = pycolmap.Image(name=str(name2), keypoints=uv2, camera_id=2, image_id=2)
+    im1 = pycolmap.Image(name=_colmap_name(str(name1)), keypoints=uv1, camera_id=1, image_id=1)
+    im2 = pycolmap.Image(name=_colmap_name(str(name2)), keypoints=uv2, camera_id=2, image_id=2)
     rec.add_image_with_trivial_frame(im1, pycolmap.Rigid3d())
     rec.add_image_with_trivial_frame(im2, pycolmap.Rigid3d(np.hstack([R, t[:, None]])))
     for k in range(len(xyz)):
