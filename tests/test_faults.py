@@ -241,3 +241,42 @@ def test_paths_with_bytes_that_are_not_utf8(tmp_path):
     png = cv2.imdecode(np.fromfile(folder / "matches.png", np.uint8), cv2.IMREAD_COLOR)
     assert png is not None and png.shape[0] > 100
     assert len(np.load(folder / "matches.npz")["uv1"]) == report["counts"]["valid_matches"] > 10_000
+
+
+# ------------------------------------------------------ 4. implausible cameras
+
+
+def _exif_focal_35mm(f35: int) -> bytes:
+    """An EXIF APP1 segment holding only FocalLengthIn35mmFilm (0xA405) in its Exif sub-IFD (big-endian TIFF)."""
+    import struct
+
+    ifd0 = struct.pack(">H", 1) + struct.pack(">HHII", 0x8769, 4, 1, 8 + 2 + 12 + 4) + struct.pack(">I", 0)
+    sub = struct.pack(">H", 1) + struct.pack(">HHIHH", 0xA405, 3, 1, f35, 0) + struct.pack(">I", 0)
+    payload = b"Exif\x00\x00MM" + struct.pack(">HI", 42, 8) + ifd0 + sub
+    return b"\xff\xe1" + struct.pack(">H", len(payload) + 2) + payload
+
+
+@pytest.mark.parametrize("source", ["--camera", "EXIF"])
+@pytest.mark.parametrize("fov", ["wide", "narrow"])
+def test_implausible_field_of_view_is_refused(pair, tmp_path, source, fov):
+    """f = 9.2 px on a 320x240 photo sees 173 deg (in EXIF: a 1 mm lens on 35 mm film); f = 20000 px sees 0.9 deg."""
+    out = tmp_path / "out"
+    f = {"wide": 9.245, "narrow": 20000}[fov]
+    if source == "--camera":
+        args = ["pair", str(pair["a"]), str(pair["b"]), "-o", str(out), "-q", "--set", "output.mesh=false",
+                "--camera", f"SIMPLE_RADIAL 320 240 {f} 160 120 0"]
+        expected = [f"bad camera 'SIMPLE_RADIAL 320 240 {f} 160 120 0'"]
+    else:
+        jpg = cv2.imencode(".jpg", cv2.imread(str(pair["a"])), [cv2.IMWRITE_JPEG_QUALITY, 95])[1].tobytes()
+        f35 = {"wide": 1, "narrow": 2200}[fov]  # f = f35 * 400 px / 43.27 mm (the diagonals)
+        (tmp_path / "a.jpg").write_bytes(jpg[:2] + _exif_focal_35mm(f35) + jpg[2:])
+        args = ["pair", str(tmp_path / "a.jpg"), str(pair["b"]), "-o", str(out), "-q", "--set", "output.mesh=false"]
+        expected = ["implausible camera from the EXIF data of a.jpg", "SIMPLE_RADIAL 320 240", "--camera"]
+    r = cli(*args, timeout=120)
+    assert r.returncode == 2, r.stderr
+    line = r.stderr.strip()
+    assert len(line.splitlines()) == 1 and "Traceback" not in line
+    for phrase in expected + ["deg across the 320 px width, a camera sees 1 to 170 deg"]:
+        assert phrase in line, (phrase, line)
+    assert ("sees 173.4 deg" if fov == "wide" else "sees 0.9 deg") in line
+    assert not out.exists() and hidden(tmp_path) == []
