@@ -26,7 +26,7 @@ from .errors import InputError
 class SiftConfig:
     max_features: int = 4096  #: SIFT features per image
     max_ratio: float = 0.8  #: Lowe's ratio test
-    max_image_size: int = 1024  #: SIFT runs on copies downscaled to this longest side (0 = full size)
+    max_image_size: int = 1024  #: SIFT runs on copies downscaled to this longest side, or its square / 2 pixels if longer than 2:1 (0 = full size)
 
 
 @dataclass

@@ -280,3 +280,31 @@ def test_implausible_field_of_view_is_refused(pair, tmp_path, source, fov):
         assert phrase in line, (phrase, line)
     assert ("sees 173.4 deg" if fov == "wide" else "sees 0.9 deg") in line
     assert not out.exists() and hidden(tmp_path) == []
+
+
+# ------------------------------------------------------ 7. elongated photos
+
+
+def test_sift_scale_keeps_ordinary_photos_and_spares_strips():
+    from sefm_recon.geometry.two_view import sift_scale
+
+    for w, h in ((6000, 4000), (4000, 3000), (1920, 1080), (3000, 4000), (2048, 1024)):
+        assert sift_scale(w, h, 1024) == pytest.approx(1024 / max(w, h))  # up to 2:1: the longer side, as before
+    assert sift_scale(4000, 100, 1024) == 1.0 and sift_scale(100, 4000, 1024) == 1.0
+    assert sift_scale(8000, 1000, 1024) == pytest.approx(np.sqrt(1024 * 1024 / 2 / 8e6))
+    assert sift_scale(640, 480, 1024) == 1.0 and sift_scale(6000, 4000, 0) == 1.0
+
+
+def test_a_textured_4000x100_pair_reconstructs(tmp_path):
+    """SIFT at 1024 px on the longer side kept 26 rows of a 4000x100 strip: 'too little overlap/texture'."""
+    from sefm_recon.synthetic import render_scene
+
+    scene = render_scene(seed=3, width=4000, height=100, style="classic")
+    for v in scene.views:
+        assert cv2.imwrite(str(tmp_path / v.name), cv2.cvtColor(v.image, cv2.COLOR_RGB2BGR))
+    out = tmp_path / "out"
+    r = cli("pair", str(tmp_path / "view_000.png"), str(tmp_path / "view_001.png"), "-o", str(out), "-q",
+            "--set", "output.mesh=false")
+    assert r.returncode == 0, r.stderr
+    counts = json.loads((out / "report.json").read_text())["counts"]
+    assert counts["sift_inliers"] >= 30 and counts["points"] > 50_000, counts
