@@ -203,6 +203,23 @@ def build_report(result: PairResult, cfg: Config, names: tuple[str, str]) -> dic
     }
 
 
+def pair_output_bytes(result: PairResult, cfg: Config) -> int:
+    """About how many bytes :func:`write_pair_outputs` writes (checked against the free space first)."""
+    n = len(result.xyz)
+    m = n if cfg.output.sparse_max_points is None else min(n, cfg.output.sparse_max_points)
+    total = 20 * n  # matches.npz: 5 float32 a match
+    total += n * (12 + (12 if result.normals is not None else 0) + 3)  # points.ply
+    total += 2 * 24 * m + 67 * m  # sparse/: a 2-D point in each image, a 3-D point with its track
+    if result.mesh is not None:
+        v, f, c, nv = result.mesh
+        total += len(v) * (24 + (24 if nv is not None else 0) + (3 if c is not None else 0)) + 13 * len(f)
+    if result.image1 is not None and result.image2 is not None:  # matches.png, at most 2000 px wide
+        (w1, h1), (w2, h2) = result.image_size
+        s = min(1.0, 2000 / (w1 + w2))
+        total += int(3 * s * (w1 + w2) * s * max(h1, h2))
+    return total + (64 << 10)  # report.json
+
+
 def write_pair_outputs(result: PairResult, cfg: Config, folder: Path, names: tuple[str, str]) -> dict:
     """Write every output file of a pair into ``folder`` (a staging folder)."""
     from .io.colmap_model import write_two_view_model
@@ -254,7 +271,9 @@ def run_pair(
         )
     cam1, cam2, sources = resolve_cameras(image1, image2, img1, img2, camera, camera2)
     result = reconstruct_pair(img1, img2, cam1, cam2, cfg, pose=pose, progress=progress, names=names)
-    with StagedOutput(out, overwrite, results=PAIR_RESULTS, owned=PAIR_OWNED) as stage:
+    staged = StagedOutput(out, overwrite, results=PAIR_RESULTS, owned=PAIR_OWNED)
+    with staged as stage:
+        staged.require(pair_output_bytes(result, cfg))
         report = write_pair_outputs(result, cfg, stage, (Path(image1).name, Path(image2).name))
         report["camera_sources"] = sources
         report["timings_s"]["total"] = round(time.perf_counter() - t0, 4)

@@ -308,3 +308,104 @@ def test_a_textured_4000x100_pair_reconstructs(tmp_path):
     assert r.returncode == 0, r.stderr
     counts = json.loads((out / "report.json").read_text())["counts"]
     assert counts["sift_inliers"] >= 30 and counts["points"] > 50_000, counts
+
+
+# ------------------------------------------------------ 3. a full disk
+
+_NO_SPACE = (r"^sefm-recon: error: no space left on the device: (more than )?\d+ MB needed for the results in .+, "
+             r"\d+ MB free$")
+
+#: The CLI without the free-space check before writing, so that the writers themselves meet the full disk.
+_NO_PRECHECK = textwrap.dedent("""
+    import sys
+    from sefm_recon import cli
+    from sefm_recon.io import output
+    output.require_space = lambda folder, estimate, where=None: 0
+    sys.exit(cli.main(sys.argv[1:]))
+""")
+
+
+def _assert_no_space(r: subprocess.CompletedProcess, mount: Path) -> None:
+    import re
+
+    assert r.returncode == 2, r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1 and re.match(_NO_SPACE, r.stderr.strip()), r.stderr
+    assert list(mount.iterdir()) == []  # nothing half-written, no staging folder
+    assert shutil.disk_usage(mount).used < 64 << 10
+
+
+@pytest.fixture(scope="module")
+def output_sizes(pair, tmp_path_factory):
+    """Bytes of a complete result of the pair (``pair``) and of the sample workspace (``colmap``)."""
+    d = tmp_path_factory.mktemp("sizes")
+    assert cli(*pair_args(pair, d / "pair")).returncode == 0
+    assert cli("colmap", str(SAMPLE), "-o", str(d / "colmap"), "-q").returncode == 0
+    return {k: sum(p.stat().st_size for p in (d / k).rglob("*") if p.is_file()) for k in ("pair", "colmap")}
+
+
+@pytest.mark.parametrize("command", ["pair", "colmap"])
+def test_full_disk_is_refused_before_writing(pair, tmpfs, output_sizes, command):
+    mount = tmpfs(output_sizes[command] / 2 / 2**20)
+    args = pair_args(pair, mount / "out") if command == "pair" else ["colmap", str(SAMPLE), "-o", str(mount / "out"),
+                                                                     "-q"]
+    _assert_no_space(cli(*args), mount)
+
+
+@pytest.mark.parametrize("command, share", [("pair", 0.1), ("pair", 0.6), ("colmap", 0.3), ("colmap", 0.85)])
+def test_full_disk_while_writing(pair, tmpfs, output_sizes, command, share):
+    """Without the check before writing: numpy, open3d, pycolmap and sqlite meet the full disk, at shares of
+    the result's size (open3d and pycolmap report success on a truncated file; sqlite says 'No registered
+    database factory succeeded')."""
+    mount = tmpfs(output_sizes[command] * share / 2**20)
+    args = pair_args(pair, mount / "out") if command == "pair" else ["colmap", str(SAMPLE), "-o", str(mount / "out"),
+                                                                     "-q"]
+    r = subprocess.run([sys.executable, "-c", _NO_PRECHECK, *args], capture_output=True, text=True, env=ENV,
+                       timeout=300)
+    _assert_no_space(r, mount)
+
+
+def test_full_disk_simulated_before_writing(pair, tmp_path, monkeypatch):
+    """No root needed: the device reports 1 MB free; run_pair refuses before writing anything."""
+    from sefm_recon.config import load_config
+    from sefm_recon.errors import InputError
+    from sefm_recon.pipeline import run_pair
+
+    real = shutil.disk_usage
+    monkeypatch.setattr(shutil, "disk_usage", lambda p: real(p)._replace(free=1 << 20))
+    out = tmp_path / "out"
+    cfg = load_config(None, ["output.poisson_depth=6", "output.progress=false"])
+    with pytest.raises(InputError, match=r"no space left on the device: \d+ MB needed for the results in .*, 1 MB fr"):
+        run_pair(pair["a"], pair["b"], out, cfg, camera=pair["cam"])
+    assert not out.exists() and hidden(tmp_path) == []
+
+
+def test_full_disk_simulated_truncated_file(tmp_path, monkeypatch):
+    """No root needed: open3d reports success on a truncated file on a full device: the staging folder says
+    'no space left' and is removed."""
+    import errno
+
+    import open3d as o3d
+
+    from sefm_recon.io.output import StagedOutput
+    from sefm_recon.io.ply import write_point_cloud
+    from sefm_recon.io.space import NoSpaceError
+
+    real_write, real_usage = o3d.t.io.write_point_cloud, shutil.disk_usage
+
+    def truncating(path, pcd, **kw):
+        ok = real_write(path, pcd, **kw)
+        with open(path, "r+b") as f:
+            f.truncate(os.path.getsize(path) // 2)
+        return ok
+
+    monkeypatch.setattr(o3d.t.io, "write_point_cloud", truncating)
+    monkeypatch.setattr(shutil, "disk_usage", lambda p: real_usage(p)._replace(free=4096))
+    xyz = np.random.default_rng(0).normal(size=(5000, 3))
+    with pytest.raises(OSError) as info:
+        write_point_cloud(tmp_path / "p.ply", xyz, np.zeros((5000, 3), np.uint8))
+    assert info.value.errno == errno.ENOSPC and list(tmp_path.iterdir()) == []
+    out = tmp_path / "out"
+    with pytest.raises(NoSpaceError, match="no space left on the device: more than 1 MB needed"):
+        with StagedOutput(out) as stage:
+            write_point_cloud(stage / "points.ply", xyz, None)
+    assert list(tmp_path.iterdir()) == []

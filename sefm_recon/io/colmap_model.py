@@ -34,13 +34,14 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from ..arrays import finite_rows
+from .space import check_written
 
 if TYPE_CHECKING:  # pycolmap is imported lazily (keeps `sefm-recon --help` fast)
     import pycolmap
 
 log = logging.getLogger(__name__)
 
-__all__ = ["MODEL_FILES", "read_model", "write_two_view_model"]
+__all__ = ["MODEL_FILES", "check_model_written", "read_model", "write_two_view_model"]
 
 #: Files a COLMAP sparse model folder may contain (binary or text).
 MODEL_FILES = frozenset(
@@ -189,6 +190,7 @@ def write_two_view_model(
     tmp.mkdir()
     try:
         rec.write_binary(str(tmp))
+        check_model_written(tmp, rec)
         moved_aside = out_dir.exists()
         if moved_aside:
             os.replace(out_dir, old)
@@ -206,6 +208,20 @@ def write_two_view_model(
         rec.num_points3D(), rec.compute_mean_reprojection_error(), out_dir,
     )
     return rec
+
+
+def check_model_written(folder: str | os.PathLike, rec: pycolmap.Reconstruction) -> None:
+    """Raise ``OSError`` when pycolmap's binary model files in ``folder`` are shorter than ``rec`` needs.
+
+    pycolmap reports success on files a full disk truncated. Lower bounds of
+    COLMAP's binary format: ``images.bin`` holds 24 bytes per 2-D point,
+    ``points3D.bin`` 51 per point and 8 per track element.
+    """
+    folder = Path(folder)
+    n2d = sum(im.num_points2D() for im in rec.images.values())
+    check_written(folder / "images.bin", 8 + 24 * n2d)
+    check_written(folder / "points3D.bin", 8 + 51 * rec.num_points3D() + 8 * rec.compute_num_observations())
+    check_written(folder / "cameras.bin", 8 + 24 * rec.num_cameras())
 
 
 def read_model(path: str | os.PathLike) -> pycolmap.Reconstruction:

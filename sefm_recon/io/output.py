@@ -45,6 +45,7 @@ from typing import Iterable, Mapping
 from .. import interrupt
 from ..errors import InputError
 from .colmap_model import MODEL_FILES
+from .space import SLACK_BYTES, NoSpaceError, free_bytes, is_disk_full, no_space_message, require_space, tree_bytes
 
 logger = logging.getLogger(__name__)
 
@@ -236,6 +237,7 @@ class StagedOutput:
         self.owned = {k: tuple(v) for k, v in (owned or {}).items()}
         self.stage: Path | None = None
         self.inside = False  #: the staging folder is inside OUT (OUT on another file system than its parent)
+        self.needed = 0  #: bytes asked for so far (:meth:`require`)
 
     def __enter__(self) -> Path:
         real = self.out.resolve()
@@ -251,14 +253,32 @@ class StagedOutput:
             logger.debug("%s is on another file system than its parent: staging inside it", real)
         return self.stage
 
+    def require(self, estimate: int) -> None:
+        """Refuse to go on (:class:`NoSpaceError`) unless the staging folder's device has room for ``estimate``
+        more bytes; call before writing them."""
+        assert self.stage is not None
+        self.needed += require_space(self.stage, estimate, self.out)
+
     def __exit__(self, exc_type, exc, tb) -> bool:
         assert self.stage is not None
+        full, written = False, 0
         try:
             if exc_type is None:
                 interrupt.check()  # a Ctrl-C that a library swallowed still stops the run here
                 self._commit()
+            elif issubclass(exc_type, Exception) and not issubclass(exc_type, InputError):
+                # a full disk, also where a library says something else (sqlite: "No registered database
+                # factory succeeded") or wraps the error: no room left where the results were being written
+                free = free_bytes(self.stage)
+                full = is_disk_full(exc) or (free is not None and free < SLACK_BYTES)
+                written = tree_bytes(self.stage) if full else 0
+                if full:
+                    logger.debug("writing the results failed on a full disk: %s: %s", exc_type.__name__, exc)
         finally:
             shutil.rmtree(self.stage, ignore_errors=True)
+        if full:
+            raise NoSpaceError(no_space_message(self.out, max(self.needed, written), free_bytes(self.stage.parent))) \
+                from exc
         return False
 
     # ------------------------------------------------------------------ commit
