@@ -282,17 +282,12 @@ def _cmd_bench(args) -> int:
 
 
 def _terminate_as_interrupt() -> None:
-    """SIGTERM (``kill``, a batch system's time limit) cleans up like Ctrl-C: no partial output."""
-    import signal
-    import threading
-
+    """Ctrl-C and SIGTERM (``kill``, a batch system's time limit) end the run alike: no partial output, exit 130."""
     import pycolmap  # noqa: F401 - its glog installs a SIGTERM stack dumper on import: ours must come after
 
-    def handler(signum, frame):
-        raise KeyboardInterrupt
+    from . import interrupt
 
-    if threading.current_thread() is threading.main_thread():
-        signal.signal(signal.SIGTERM, handler)
+    interrupt.install()
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -301,6 +296,9 @@ def main(argv: list[str] | None = None) -> int:
     if args.command is None:
         parser.print_help()
         return 2
+    for stream in (sys.stdout, sys.stderr):  # a path with bytes that are not UTF-8 is printed, not a crash
+        if hasattr(stream, "reconfigure"):
+            stream.reconfigure(errors="backslashreplace")
     _setup_logging(args.quiet, args.verbose)
     _terminate_as_interrupt()
     from .memory import keep_freed_memory
@@ -315,6 +313,11 @@ def main(argv: list[str] | None = None) -> int:
         print("sefm-recon: interrupted", file=sys.stderr)
         return 130
     except Exception as err:  # noqa: BLE001 - the last line of defence: one line, exit 1
+        from .interrupt import caused_by_interrupt
+
+        if caused_by_interrupt(err):  # e.g. numba's SystemError around a Ctrl-C that came during a kernel
+            print("sefm-recon: interrupted", file=sys.stderr)
+            return 130
         if args.verbose:
             raise
         print(f"sefm-recon: unexpected error: {type(err).__name__}: {err} (run with -v for details)",

@@ -40,6 +40,7 @@ import numpy as np
 from . import __version__
 from .config import Config
 from .errors import InputError
+from .io.colmap_model import MODEL_FILES
 
 logger = logging.getLogger(__name__)
 
@@ -58,6 +59,8 @@ MODEL_STEMS = ("cameras", "images")
 #: What ``sefm-recon colmap`` writes into OUT; with ``--overwrite`` these are
 #: replaced, everything else in OUT is kept.
 COLMAP_RESULTS = ("pairs", "fused.ply", "database.db", "sparse", "report.json")
+#: Inside those folders, the files it writes; with ``--overwrite`` the user's other files there are kept.
+COLMAP_OWNED = {"pairs": ("*/matches.npz", "*/points.ply"), "sparse": MODEL_FILES}
 
 
 # ---------------------------------------------------------------------------- workspace
@@ -496,8 +499,11 @@ def _sum_counts(entries: Iterable[dict]) -> dict:
     return total
 
 
-def _collect(r: dict, states: list[_PairState], stage: Path, results: dict[int, dict]) -> None:
-    """Record one pair's result; a successful pair's matches.npz and points.ply go into ``stage/pairs``."""
+def _collect(r: dict, states: list[_PairState], staged, results: dict[int, dict]) -> None:
+    """Record one pair's result; a successful pair's matches.npz and points.ply go into ``stage/pairs``.
+
+    ``staged``: the :class:`~sefm_recon.io.output.StagedOutput` (its free space is checked first).
+    """
     from .io.ply import write_point_cloud
 
     if r["status"] == "error":
@@ -507,7 +513,8 @@ def _collect(r: dict, states: list[_PairState], stage: Path, results: dict[int, 
         st.entry.update(status="skipped", reason=r["reason"], counts=r.get("counts", {}))
         logger.warning("skipping %s %s: %s", *st.entry["images"], r["reason"])
         return
-    folder = stage / "pairs" / st.folder
+    staged.require(len(r["uv1"]) * (20 + 27))  # matches.npz (at most), points.ply
+    folder = staged.stage / "pairs" / st.folder
     folder.mkdir(parents=True)
     np.savez_compressed(folder / "matches.npz", uv1=r["uv1"], uv2=r["uv2"], score=r["score"])
     write_point_cloud(folder / "points.ply", r["xyz"], r["rgb"], r["normals"])
@@ -546,6 +553,7 @@ def run_colmap(
 ) -> dict:
     """``sefm-recon colmap``: reconstruct a COLMAP workspace densely into ``out``; returns the report."""
     from .io.colmap_database import PairMatches, quantise_matches, write_database
+    from .io.colmap_model import check_model_written
     from .io.output import StagedOutput, check_output_dir
     from .io.ply import write_point_cloud
     from .reconstruct.fuse import fuse_point_clouds
@@ -602,7 +610,8 @@ def run_colmap(
                 rec.num_points3D(), len(tasks), how,
                 f"on the Dask cluster at {scheduler}" if scheduler else f"with {n_workers} worker(s)")
 
-    with StagedOutput(out, overwrite, results=COLMAP_RESULTS) as stage:
+    staged = StagedOutput(out, overwrite, results=COLMAP_RESULTS, owned=COLMAP_OWNED)
+    with staged as stage:
         (stage / "pairs").mkdir()
         t0 = time.perf_counter()
         results: dict[int, dict] = {}
@@ -614,7 +623,7 @@ def run_colmap(
         try:
             with contextlib.closing(iter_pair_results(tasks, workers, scheduler)) as pair_results:
                 for r in pair_results:
-                    _collect(r, states, stage, results)
+                    _collect(r, states, staged, results)
                     if bar is not None:
                         bar.update(1)
         finally:
@@ -631,6 +640,7 @@ def run_colmap(
         clouds = [(r["xyz"], r["rgb"], centre_of(rec.images[states[i].a])) for i, r in sorted(results.items())]
         fused = fuse_point_clouds(clouds, voxel, normals=[r["normals"] for _, r in sorted(results.items())],
                                   std_ratio=cfg.colmap.fuse_std_ratio)
+        staged.require(27 * len(fused.xyz))
         write_point_cloud(stage / "fused.ply", fused.xyz, fused.rgb, fused.normals)
         timings["fuse"] = time.perf_counter() - t0
 
@@ -638,12 +648,16 @@ def run_colmap(
         t0 = time.perf_counter()
         pm = [PairMatches(states[i].a, states[i].b, r["uv1"], r["uv2"], r["score"]) for i, r in sorted(results.items())]
         q = quantise_matches(pm, cfg.colmap.cell_size, cfg.colmap.max_error)
+        n_kp, n_m = sum(map(len, q.keypoints.values())), sum(map(len, q.matches.values()))
+        # database.db: keypoints, matches and inliers (sqlite pages on top); sparse/: every keypoint, a point a match
+        staged.require(12 * n_kp + 20 * n_m + (256 << 10) + 24 * n_kp + 67 * n_m)
         db_counts = write_database(stage / "database.db", rec, q, cfg.colmap.max_epipolar_error)
         timings["database"] = time.perf_counter() - t0
 
         # triangulation with the given poses
         t0 = time.perf_counter()
         tri = triangulate(rec, stage / "database.db", ws.image_dir, stage / "sparse", cfg)
+        check_model_written(stage / "sparse", tri)
         timings["triangulate"] = time.perf_counter() - t0
         sparse = {
             "points": int(tri.num_points3D()),

@@ -97,7 +97,8 @@ class SiftConfig:
         range=Range(0, 1, low_open=True),
         why="a ratio of two distances, the best one first: at 1 every mutual nearest neighbour passes, at 0 none")
     max_image_size: int = _setting(
-        1024, "SIFT runs on copies downscaled to this longest side", unit="px",
+        1024, "SIFT runs on copies downscaled to this longest side (photos longer than 2:1: to this "
+              "size squared over 2 pixels)", unit="px",
         range=Range(64, MAX_SIDE, special=(0, "full size")),
         why="images under 64 px on a side are refused as too small to match; above 100 000 px (beyond any "
             "camera's sensor) the value would mean full size, like 0")

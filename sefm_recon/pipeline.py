@@ -181,6 +181,8 @@ def _mesh(result: PairResult, cfg: Config):
     if result.normals is None or len(result.xyz) < 100:
         logger.warning("too few points (%d) for a mesh: mesh.ply not written", len(result.xyz))
         return None
+    # open3d holds the interpreter for the whole Poisson solve: a Ctrl-C takes effect when it ends.
+    logger.info("meshing %d points (Ctrl-C stops the run once the mesh is done)", len(result.xyz))
     return poisson_mesh(result.xyz, result.normals, result.rgb, depth=cfg.output.poisson_depth,
                         density_quantile=cfg.output.density_quantile, max_points=cfg.output.mesh_max_points)
 
@@ -203,6 +205,23 @@ def build_report(result: PairResult, cfg: Config, names: tuple[str, str]) -> dic
         "timings_s": {k: round(v, 4) for k, v in result.timings.items()},
         "counts": result.counts,
     }
+
+
+def pair_output_bytes(result: PairResult, cfg: Config) -> int:
+    """About how many bytes :func:`write_pair_outputs` writes (checked against the free space first)."""
+    n = len(result.xyz)
+    m = n if cfg.output.sparse_max_points is None else min(n, cfg.output.sparse_max_points)
+    total = 20 * n  # matches.npz: 5 float32 a match
+    total += n * (12 + (12 if result.normals is not None else 0) + 3)  # points.ply
+    total += 2 * 24 * m + 67 * m  # sparse/: a 2-D point in each image, a 3-D point with its track
+    if result.mesh is not None:
+        v, f, c, nv = result.mesh
+        total += len(v) * (24 + (24 if nv is not None else 0) + (3 if c is not None else 0)) + 13 * len(f)
+    if result.image1 is not None and result.image2 is not None:  # matches.png, at most 2000 px wide
+        (w1, h1), (w2, h2) = result.image_size
+        s = min(1.0, 2000 / (w1 + w2))
+        total += int(3 * s * (w1 + w2) * s * max(h1, h2))
+    return total + (64 << 10)  # report.json
 
 
 def write_pair_outputs(result: PairResult, cfg: Config, folder: Path, names: tuple[str, str]) -> dict:
@@ -242,7 +261,7 @@ def run_pair(
     pose: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> dict:
     """``sefm-recon pair``: read, reconstruct, write into ``out`` atomically; returns the report."""
-    from .io.output import PAIR_RESULTS, StagedOutput, check_output_dir
+    from .io.output import PAIR_OWNED, PAIR_RESULTS, StagedOutput, check_output_dir
 
     check_output_dir(out, overwrite)  # fail before the long work, not after
     t0 = time.perf_counter()
@@ -256,7 +275,9 @@ def run_pair(
         )
     cam1, cam2, sources = resolve_cameras(image1, image2, img1, img2, camera, camera2)
     result = reconstruct_pair(img1, img2, cam1, cam2, cfg, pose=pose, progress=progress, names=names)
-    with StagedOutput(out, overwrite, results=PAIR_RESULTS) as stage:
+    staged = StagedOutput(out, overwrite, results=PAIR_RESULTS, owned=PAIR_OWNED)
+    with staged as stage:
+        staged.require(pair_output_bytes(result, cfg))
         report = write_pair_outputs(result, cfg, stage, (Path(image1).name, Path(image2).name))
         report["camera_sources"] = sources
         report["timings_s"]["total"] = round(time.perf_counter() - t0, 4)

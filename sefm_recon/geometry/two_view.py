@@ -48,6 +48,19 @@ def skew(v: np.ndarray) -> np.ndarray:
     return np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]], dtype=np.float64)
 
 
+def sift_scale(w: int, h: int, max_size: int) -> float:
+    """The scale SIFT works at: longer side at most ``max_size``, or at most ``max_size**2 / 2`` pixels.
+
+    The pixel bound only matters for a photo longer than 2:1. Scaled by its
+    longer side alone, a 4000x100 strip became 1024x26 and kept too few rows
+    for SIFT's features ("too little texture" on a textured photo); its pixels
+    are fewer than an ordinary photo's at ``max_size``, so it keeps them.
+    """
+    if not max_size or w * h == 0:
+        return 1.0
+    return min(1.0, max(max_size / max(w, h), float(np.sqrt(max_size * max_size / 2.0 / (w * h)))))
+
+
 def extract_sift(gray: np.ndarray, max_features: int = 8192, max_size: int = 0) -> tuple[np.ndarray, np.ndarray]:
     """SIFT keypoints and descriptors with pycolmap (COLMAP's CPU SIFT).
 
@@ -59,10 +72,10 @@ def extract_sift(gray: np.ndarray, max_features: int = 8192, max_size: int = 0) 
     """
     h, w = gray.shape[:2]
     factor = np.ones(2)
-    if max_size and max(h, w) > max_size:
+    s = sift_scale(w, h, max_size)
+    if s < 1.0:
         # Relative pose needs well spread inliers, not full resolution, and SIFT's
         # cost grows with the pixels. COLMAP pixel edges scale exactly.
-        s = max_size / max(h, w)
         ws, hs = max(1, round(w * s)), max(1, round(h * s))
         gray = cv2.resize(gray, (ws, hs), interpolation=cv2.INTER_AREA)
         factor = np.array([w / ws, h / hs])

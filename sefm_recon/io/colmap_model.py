@@ -34,13 +34,14 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from ..arrays import finite_rows
+from .space import check_written
 
 if TYPE_CHECKING:  # pycolmap is imported lazily (keeps `sefm-recon --help` fast)
     import pycolmap
 
 log = logging.getLogger(__name__)
 
-__all__ = ["MODEL_FILES", "read_model", "write_two_view_model"]
+__all__ = ["MODEL_FILES", "check_model_written", "read_model", "write_two_view_model"]
 
 #: Files a COLMAP sparse model folder may contain (binary or text).
 MODEL_FILES = frozenset(
@@ -61,6 +62,15 @@ def _copy_camera(camera: pycolmap.Camera, camera_id: int) -> pycolmap.Camera:
             "are assumed to be in its (distorted) image", camera_id, cam.model_name,
         )
     return cam
+
+
+def _colmap_name(name: str) -> str | bytes:
+    """An image name for pycolmap: one that is not UTF-8 (a surrogate-escaped byte of a file name) as its bytes."""
+    try:
+        name.encode("utf-8")
+        return name
+    except UnicodeEncodeError:
+        return os.fsencode(name)
 
 
 def _check_rotation(R: np.ndarray) -> np.ndarray:
@@ -89,8 +99,8 @@ def _build_reconstruction(
     rec = pycolmap.Reconstruction()
     rec.add_camera_with_trivial_rig(_copy_camera(camera1, 1))
     rec.add_camera_with_trivial_rig(_copy_camera(camera2, 2))
-    im1 = pycolmap.Image(name=str(name1), keypoints=uv1, camera_id=1, image_id=1)
-    im2 = pycolmap.Image(name=str(name2), keypoints=uv2, camera_id=2, image_id=2)
+    im1 = pycolmap.Image(name=_colmap_name(str(name1)), keypoints=uv1, camera_id=1, image_id=1)
+    im2 = pycolmap.Image(name=_colmap_name(str(name2)), keypoints=uv2, camera_id=2, image_id=2)
     rec.add_image_with_trivial_frame(im1, pycolmap.Rigid3d())
     rec.add_image_with_trivial_frame(im2, pycolmap.Rigid3d(np.hstack([R, t[:, None]])))
     for k in range(len(xyz)):
@@ -180,6 +190,7 @@ def write_two_view_model(
     tmp.mkdir()
     try:
         rec.write_binary(str(tmp))
+        check_model_written(tmp, rec)
         moved_aside = out_dir.exists()
         if moved_aside:
             os.replace(out_dir, old)
@@ -197,6 +208,20 @@ def write_two_view_model(
         rec.num_points3D(), rec.compute_mean_reprojection_error(), out_dir,
     )
     return rec
+
+
+def check_model_written(folder: str | os.PathLike, rec: pycolmap.Reconstruction) -> None:
+    """Raise ``OSError`` when pycolmap's binary model files in ``folder`` are shorter than ``rec`` needs.
+
+    pycolmap reports success on files a full disk truncated. Lower bounds of
+    COLMAP's binary format: ``images.bin`` holds 24 bytes per 2-D point,
+    ``points3D.bin`` 51 per point and 8 per track element.
+    """
+    folder = Path(folder)
+    n2d = sum(im.num_points2D() for im in rec.images.values())
+    check_written(folder / "images.bin", 8 + 24 * n2d)
+    check_written(folder / "points3D.bin", 8 + 51 * rec.num_points3D() + 8 * rec.compute_num_observations())
+    check_written(folder / "cameras.bin", 8 + 24 * rec.num_cameras())
 
 
 def read_model(path: str | os.PathLike) -> pycolmap.Reconstruction:

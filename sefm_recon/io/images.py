@@ -3,16 +3,13 @@
 from __future__ import annotations
 
 import logging
-import os
-import sys
-import tempfile
-import threading
 from pathlib import Path
 
 import cv2
 import numpy as np
 
 from ..errors import InputError
+from .space import captured_stderr
 
 logger = logging.getLogger(__name__)
 
@@ -32,9 +29,6 @@ EDGE_LEVEL = 4.0
 #: 3 % or more; a flat or smoothly shaded image has 0 %.
 MIN_EDGE_SHARE = 0.005
 
-_stderr_lock = threading.Lock()
-
-
 def _decode(data: np.ndarray, flags: int) -> tuple[np.ndarray | None, str]:
     """``cv2.imdecode`` with the C library's stderr chatter captured.
 
@@ -42,28 +36,12 @@ def _decode(data: np.ndarray, flags: int) -> tuple[np.ndarray | None, str]:
     data" straight to file descriptor 2; the user should see one line, so the
     text is captured and returned (and logged by the caller).
     """
-    with _stderr_lock:
+    with captured_stderr() as chatter:
         try:
-            sys.stderr.flush()
-            saved = os.dup(2)
-        except (OSError, ValueError):  # no usable fd 2: decode without capturing
-            try:
-                return cv2.imdecode(data, flags), ""
-            except cv2.error as err:
-                return None, str(err)
-        with tempfile.TemporaryFile() as tmp:
-            os.dup2(tmp.fileno(), 2)
-            try:
-                img = cv2.imdecode(data, flags)
-                err_text = ""
-            except cv2.error as err:
-                img, err_text = None, str(err)
-            finally:
-                os.dup2(saved, 2)
-                os.close(saved)
-            tmp.seek(0)
-            text = tmp.read().decode("utf-8", "replace")
-    return img, " ".join((text + " " + err_text).split())
+            img, err_text = cv2.imdecode(data, flags), ""
+        except cv2.error as err:
+            img, err_text = None, str(err)
+    return img, " ".join((" ".join(chatter) + " " + err_text).split())
 
 
 def header_size(data: np.ndarray) -> tuple[int, int] | None:

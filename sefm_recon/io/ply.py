@@ -29,6 +29,8 @@ from typing import Iterator
 
 import numpy as np
 
+from .space import captured_stderr, check_written
+
 log = logging.getLogger(__name__)
 
 __all__ = [
@@ -62,6 +64,15 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     finally:
         with contextlib.suppress(FileNotFoundError):
             tmp.unlink()
+
+
+def _check_ply(ok: bool, tmp: Path, body_bytes: int, chatter: list[str]) -> None:
+    """open3d's result, and the file's size (it reports success on a file a full disk truncated)."""
+    if any(chatter):
+        log.debug("open3d writing %s: %s", tmp.name, " ".join(chatter)[:300])
+    check_written(tmp, body_bytes)
+    if not ok:
+        raise OSError(f"open3d failed to write {tmp.name}")
 
 
 def read_ply_header(path: str | os.PathLike) -> dict:
@@ -164,10 +175,11 @@ def write_point_cloud(
         pcd.point.normals = o3d.core.Tensor(np.ascontiguousarray(normals, np.float32))
     if rgb is not None:
         pcd.point.colors = o3d.core.Tensor(np.ascontiguousarray(rgb))
+    row = 12 + (12 if normals is not None else 0) + (3 if rgb is not None else 0)
     with atomic_path(path) as tmp:
-        ok = o3d.t.io.write_point_cloud(str(tmp), pcd, write_ascii=False, compressed=False)
-        if not ok:
-            raise OSError(f"open3d failed to write {path}")
+        with captured_stderr() as chatter:  # RPly prints a line per failed write (a full disk)
+            ok = o3d.t.io.write_point_cloud(str(tmp), pcd, write_ascii=False, compressed=False)
+        _check_ply(ok, tmp, n * row, chatter)
     log.debug("wrote %d points to %s", n, path)
     return path
 
@@ -239,18 +251,19 @@ def write_mesh(
         mesh.vertex_normals = o3d.utility.Vector3dVector(vertex_normals)
     if vertex_colors is not None:
         mesh.vertex_colors = o3d.utility.Vector3dVector(_to_float_colors(vertex_colors))
+    row = 24 + (24 if vertex_normals is not None else 0) + (3 if vertex_colors is not None else 0)
     with atomic_path(path) as tmp:
-        ok = o3d.io.write_triangle_mesh(
-            str(tmp),
-            mesh,
-            write_ascii=False,
-            compressed=False,
-            write_vertex_normals=vertex_normals is not None,
-            write_vertex_colors=vertex_colors is not None,
-            write_triangle_uvs=False,
-        )
-        if not ok:
-            raise OSError(f"open3d failed to write {path}")
+        with captured_stderr() as chatter:
+            ok = o3d.io.write_triangle_mesh(
+                str(tmp),
+                mesh,
+                write_ascii=False,
+                compressed=False,
+                write_vertex_normals=vertex_normals is not None,
+                write_vertex_colors=vertex_colors is not None,
+                write_triangle_uvs=False,
+            )
+        _check_ply(ok, tmp, v * row + len(triangles) * 13, chatter)  # a face: a count byte, three int32
     log.debug("wrote mesh (%d vertices, %d triangles) to %s", v, len(triangles), path)
     return path
 

@@ -223,7 +223,9 @@ def write_image(path: str | os.PathLike, rgb: np.ndarray) -> Path:
 
     The format follows ``path``'s extension (``.png``, ``.jpg``, ...). RGB is
     converted to OpenCV's BGR. Returns ``Path(path)``; raises ``OSError`` if
-    OpenCV cannot write it.
+    OpenCV cannot encode it or the file cannot be written. The image is encoded
+    in memory and written by Python: ``cv2.imwrite`` crashes on a path with
+    bytes that are not UTF-8.
     """
     path = Path(path)
     img = np.asarray(rgb)
@@ -233,8 +235,11 @@ def write_image(path: str | os.PathLike, rgb: np.ndarray) -> Path:
         img = cv2.cvtColor(np.ascontiguousarray(img), cv2.COLOR_RGBA2BGRA)
     elif img.ndim != 2:
         raise ValueError(f"image must be (H, W), (H, W, 3) or (H, W, 4), got {img.shape}")
+    ok, buf = cv2.imencode(path.suffix or ".png", img)
+    if not ok:
+        raise OSError(f"OpenCV cannot encode {path.name}")
     with atomic_path(path) as tmp:
-        if not cv2.imwrite(str(tmp), img):
-            raise OSError(f"OpenCV failed to write {path}")
+        with open(tmp, "wb") as f:
+            f.write(buf.tobytes())
     log.debug("wrote %s", path)
     return path
