@@ -136,7 +136,7 @@ def _align_keypoints(p, q, desc1, desc2, lo, hi, max_dist):
     kept as one row, updated in place: outside the band a row only repeats
     the row above until its first in-band cell, and after the last one only
     until the row above catches up, so a narrow band costs a few cells per
-    key point instead of a full row (measured: README, speed). Each cell
+    key point instead of a full row. Each cell
     also keeps the last pair of its optimal path (``owner``), so the pairs
     are read back without the full table. Ties are broken as in the full
     table: the row above, then the cell to the left, then the pair.

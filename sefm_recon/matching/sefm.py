@@ -85,8 +85,8 @@ def coarse_level(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config) -
     """Match the pair reduced ``pyramid.factor`` times (itself coarse to fine when still large).
 
     Returns None when the images are small enough to match directly
-    (``pyramid.min_size``). A factor of 4 rather than 2 measured as accurate
-    and saved the middle level's time (README, speed).
+    (``pyramid.min_size``). A factor of 4 rather than 2: as accurate, without the
+    middle level's time.
     """
     p = cfg.pyramid
     longest = max(img1.shape[:2] + img2.shape[:2])
@@ -98,13 +98,13 @@ def coarse_level(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config) -
     S2 = np.diag([sx2, sy2, 1.0])
     tvc = dataclasses.replace(tv, K1=S1 @ tv.K1, K2=S2 @ tv.K2, kp1=tv.kp1 * [sx1, sy1], kp2=tv.kp2 * [sx2, sy2])
     # The key-point threshold is the photo's (see jump_threshold), not the reduced image's:
-    # measured, the coarse level then finds low-contrast surfaces the fine level needs.
+    # the coarse level then finds low-contrast surfaces the fine level needs.
     ccfg = dataclasses.replace(cfg, rough=dataclasses.replace(cfg.rough, jump_threshold=jump_threshold(cfg, longest),
                                                               jump_reference_size=0))
     if not p.coarse_subpixel:  # the coarse level only bounds the search: whole samples do
         ccfg = dataclasses.replace(ccfg, dense=dataclasses.replace(cfg.dense, subpixel=False, fill_max_gap=0,
                                                                    propagate_passes=0))
-    if not p.coarse_both_directions:  # measured: same bands, the coarse level in 60 % of the time
+    if not p.coarse_both_directions:  # the same bands, the coarse level in 60 % of the time
         ccfg = dataclasses.replace(ccfg, dense=dataclasses.replace(ccfg.dense, both_directions=False))
     try:
         dm = match_pair(c1, c2, tvc, ccfg)
@@ -152,12 +152,8 @@ def window_shift(cfg: Config, longest: int) -> int:
     (2000 px), growing with the square root of the size above it (6 at
     4000 px). An edge spreads over more samples on a larger photo, so the
     window must move farther to clear it, but the farther it moves the less
-    it says about the sample itself. Measured with two propagation rounds:
-    at 1000 px 4 samples instead of 3 gave coverage at 1 px +0.0010 for
-    0.0003 of precision (seeds 7, 10-58); at 2000 px 6 instead of 4 gave
-    coverage +0.0003 to +0.0008 for 0.0004 to 0.0006 of precision (seeds 7,
-    10, 11), while 4 instead of 3 had gained coverage +0.0005 to +0.0008
-    (precision within 0.0002; seeds 7, 10, 11, 12).
+    it says about the sample itself: each step gains a little coverage for less
+    precision (docs/algorithm.md).
     """
     shift = cfg.dense.propagate_window_shift
     ref = 2 * cfg.rough.jump_reference_size
@@ -215,15 +211,14 @@ def match_pair(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config, pro
     else:
         lo, hi = search_band(lp, tv, depths, cfg.rough.band_slack, alphas)
     # Big temporaries are dropped as soon as they are used up, so later stages
-    # reuse their memory instead of paying page faults on fresh memory
-    # (measured: README, speed).
+    # reuse their memory instead of paying page faults on fresh memory.
     del depths
     timings["line_pairs"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
     off1, off2 = lp.offset1, lp.offset2
     # On large images a ZNCC test does most of the reverse pass's work at half
-    # the cost (measured: README, speed).
+    # the cost.
     d = cfg.dense
     both = d.both_directions and (d.reverse_max_size <= 0 or max(size1 + size2) <= d.reverse_max_size)
     min_zncc = d.min_zncc if both or not d.both_directions else d.single_min_zncc

@@ -111,7 +111,7 @@ def zncc3(a, i, b, jpos, half):
         return -2.0, zncc(a, i, b, jpos, half), -2.0
     j0 = int(np.floor(jpos))
     # Cut windows: samples near the image border keep a match and a sub-pixel
-    # position (measured: +0.004 coverage at 1 px on a 2000 px pair).
+    # position, which adds coverage along the border.
     lo, hi = _window(i, n1, j0, n2, half, 1, 2, half + 1)
     if hi < lo:
         return -2.0, zncc(a, i, b, jpos, half), -2.0
@@ -148,7 +148,7 @@ def zncc3_sheared(a, i, b, jpos, half, g, h, o_first, cc):
         return zncc3(a, i, b, jpos, half)  # near a line end: the plain (cut) window
     m = (hi - lo + 1) * C
     t = _SUMS3
-    for c in range(C):  # column by column: measured faster than sample by sample
+    for c in range(C):  # column by column: faster than sample by sample
         sh = jpos + (o_first + c // cc) * h
         for s in range(lo, hi + 1):
             p = sh + g * s
