@@ -26,6 +26,7 @@ from numba import njit, prange
 from ..config import Config
 from ..errors import InputError
 from ..geometry.epipolar import ray_angles
+from ..geometry.kernels import pixel_ray
 from ..geometry.triangulate import triangulate
 from ..geometry.two_view import TwoView
 from .lines import LineGrid, line_grid, line_images, pixel_grid
@@ -123,50 +124,56 @@ class GridScalars(NamedTuple):
 
 
 @njit(parallel=True, cache=True)
-def _read_back(disp, row_of, g, basis, P2, w2, h2, phi, alpha, uv2, row):
-    """For each pixel ray ``(phi, alpha)`` of image 1: the disparity of the line images at
-    its fractional row and column, interpolated over the neighbours on the nearest
-    cell's surface, and the position in image 2 of the ray at that parallax in the
-    pixel's own half-plane. Writes ``uv2`` (N, 2) and ``row`` (N,) (-1: no match).
+def _read_back(disp, row_of, g, basis, K1inv, P2, w1, y0, w2, h2, uv2, row):
+    """For pixel ``i`` of image 1 (column ``i % w1``, row ``y0 + i // w1``): its ray's
+    ``(phi, alpha)``, the disparity of the line images at its fractional row and
+    column, interpolated over the neighbours on the nearest cell's surface, and the
+    position in image 2 of the ray at that parallax in the pixel's own half-plane.
+    Writes ``uv2`` (N, 2) and ``row`` (N,) (-1: no match).
 
     The cell nearest the pixel sets the surface (the pixel is unmatched when it is
-    invalid: the matcher's checks rejected it). ``row_of`` (S,) maps uniform row slots to rows of
-    ``disp`` (-1: slot not kept);
+    invalid: the matcher's checks rejected it). ``row_of`` (S,) maps uniform row slots
+    to rows of ``disp`` (-1: slot not kept); ``K1inv`` (3, 3) maps pixels to rays;
     ``P2`` (3, 3) = ``K2 R`` projects camera-1-axes rays into image 2.
     """
-    n = phi.shape[0]
+    n = row.shape[0]
     H, W = disp.shape
     S = row_of.shape[0]
     two_pi = 2.0 * np.pi
     circle = two_pi / g.phi_step
     for i in prange(n):
         row[i] = -1
-        a = alpha[i]
+        r0, r1, r2 = pixel_ray(K1inv, i % w1 + 0.5, y0 + i // w1 + 0.5)
+        rb = r0 * basis[0, 0] + r1 * basis[0, 1] + r2 * basis[0, 2]
+        ra = r0 * basis[1, 0] + r1 * basis[1, 1] + r2 * basis[1, 2]
+        re = r0 * basis[2, 0] + r1 * basis[2, 1] + r2 * basis[2, 2]
+        phi = np.arctan2(re, ra)
+        a = np.arctan2(np.sqrt(ra * ra + re * re), rb)
         if a < g.edge or a > np.pi - g.edge:
             continue
         c = g.pad + (g.u_max - np.log(np.tan(0.5 * a))) / g.u_step
-        x = phi[i] - g.phi0
+        x = phi - g.phi0
         x -= two_pi * np.floor(x / two_pi)
         kf = x / g.phi_step
         if not g.full and kf > 0.5 * (S - 1 + circle):  # just below row 0, not past the last row
             kf -= circle
         k0 = int(np.floor(kf))
         wk = kf - k0
-        r0 = -1
-        r1 = -1
+        q0 = -1
+        q1 = -1
         if g.full:
-            r0 = row_of[k0 % S]
-            r1 = row_of[(k0 + 1) % S]
+            q0 = row_of[k0 % S]
+            q1 = row_of[(k0 + 1) % S]
         else:
             if 0 <= k0 < S:
-                r0 = row_of[k0]
+                q0 = row_of[k0]
             if 0 <= k0 + 1 < S:
-                r1 = row_of[k0 + 1]
+                q1 = row_of[k0 + 1]
         c0 = int(np.floor(c))
         wc = c - c0
         # the cell nearest the pixel sets the surface: where the matcher rejected it
         # (left-right check, uniqueness, speckle), the pixel stays unmatched
-        rn = r0 if wk < 0.5 else r1
+        rn = q0 if wk < 0.5 else q1
         cn = c0 + (1 if wc >= 0.5 else 0)
         if rn < 0 or cn < 0 or cn >= W or disp[rn, cn] < g.min_disparity:
             continue
@@ -174,7 +181,7 @@ def _read_back(disp, row_of, g, basis, P2, w2, h2, phi, alpha, uv2, row):
         num = 0.0
         den = 0.0
         for j in range(4):
-            rr = r0 if j < 2 else r1
+            rr = q0 if j < 2 else q1
             cc = c0 + (j & 1)
             w = (1.0 - wk if j < 2 else wk) * (1.0 - wc if (j & 1) == 0 else wc)
             if rr < 0 or cc < 0 or cc >= W:
@@ -185,7 +192,7 @@ def _read_back(disp, row_of, g, basis, P2, w2, h2, phi, alpha, uv2, row):
                 den += w
         d = num / den if den > 0.0 and g.interpolate else dn
         a2 = 2.0 * np.arctan(np.exp(g.u_max - (c - d - g.pad) * g.u_step))
-        cp, sp = np.cos(phi[i]), np.sin(phi[i])
+        cp, sp = np.cos(phi), np.sin(phi)
         ca, sa = np.cos(a2), np.sin(a2)
         x0 = ca * basis[0, 0] + sa * (cp * basis[1, 0] + sp * basis[2, 0])
         x1 = ca * basis[0, 1] + sa * (cp * basis[1, 1] + sp * basis[2, 1])
@@ -225,20 +232,17 @@ def pixel_matches(disp: np.ndarray, min_disparity: float, grid: LineGrid, tv: Tw
                     float(grid.pad), float(grid.edge), float(min_disparity), bool(interpolate))
     P2 = np.ascontiguousarray(tv.K2 @ tv.R)
     basis = np.ascontiguousarray(grid.basis, np.float64)
+    K1inv = np.ascontiguousarray(np.linalg.inv(tv.K1))
     w, h = size1
     rows_per_chunk = max(1, _CHUNK_PIXELS // w)
-    xs = np.arange(w) + 0.5
     out1, out2, out_r = [], [], []
     for y0 in range(0, h, rows_per_chunk):
-        ys = np.arange(y0, min(h, y0 + rows_per_chunk)) + 0.5
-        X, Y = np.meshgrid(xs, ys)
-        uv1 = np.column_stack([X.ravel(), Y.ravel()])
-        phi, alpha = ray_angles(tv.K1, np.eye(3), grid.basis, uv1)
-        uv2 = np.empty_like(uv1)
-        row = np.empty(len(uv1), np.int64)
-        _read_back(disp, row_of, g, basis, P2, float(size2[0]), float(size2[1]), phi, alpha, uv2, row)
-        ok = row >= 0
-        out1.append(uv1[ok])
+        n = w * (min(h, y0 + rows_per_chunk) - y0)
+        uv2 = np.empty((n, 2))
+        row = np.empty(n, np.int64)
+        _read_back(disp, row_of, g, basis, K1inv, P2, w, y0, float(size2[0]), float(size2[1]), uv2, row)
+        ok = np.flatnonzero(row >= 0)
+        out1.append(np.column_stack([ok % w + 0.5, ok // w + (y0 + 0.5)]))
         out2.append(uv2[ok])
         out_r.append(row[ok])
     return np.concatenate(out1), np.concatenate(out2), np.concatenate(out_r)
