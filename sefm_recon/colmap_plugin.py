@@ -14,7 +14,9 @@ binary or text) whose cameras and poses are used as given. The steps:
 4. **fuse** every pair's points (:mod:`sefm_recon.reconstruct.fuse`);
 5. **database**: the dense matches quantised to keypoints, the matches and their
    two-view geometries (:mod:`sefm_recon.io.colmap_database`);
-6. **triangulate** those matches with the given poses (``pycolmap.triangulate_points``).
+6. **triangulate** those matches with the given poses (``pycolmap.triangulate_points``),
+   and write ``sparse_poses/``: the poses with the database's keypoints and no
+   points, the input COLMAP's own ``point_triangulator`` needs.
 
 Everything is written into a staging folder and moved into OUT at the end.
 """
@@ -58,9 +60,9 @@ __all__ = [
 MODEL_STEMS = ("cameras", "images")
 #: What ``sefm-recon colmap`` writes into OUT; with ``--overwrite`` these are
 #: replaced, everything else in OUT is kept.
-COLMAP_RESULTS = ("pairs", "fused.ply", "database.db", "sparse", "report.json")
+COLMAP_RESULTS = ("pairs", "fused.ply", "database.db", "sparse", "sparse_poses", "report.json")
 #: Inside those folders, the files it writes; with ``--overwrite`` the user's other files there are kept.
-COLMAP_OWNED = {"pairs": ("*/matches.npz", "*/points.ply"), "sparse": MODEL_FILES}
+COLMAP_OWNED = {"pairs": ("*/matches.npz", "*/points.ply"), "sparse": MODEL_FILES, "sparse_poses": MODEL_FILES}
 
 
 # ---------------------------------------------------------------------------- workspace
@@ -553,7 +555,7 @@ def run_colmap(
 ) -> dict:
     """``sefm-recon colmap``: reconstruct a COLMAP workspace densely into ``out``; returns the report."""
     from .io.colmap_database import PairMatches, quantise_matches, write_database
-    from .io.colmap_model import check_model_written
+    from .io.colmap_model import check_model_written, write_poses_model
     from .io.output import StagedOutput, check_output_dir
     from .io.ply import write_point_cloud
     from .reconstruct.fuse import fuse_point_clouds
@@ -649,8 +651,9 @@ def run_colmap(
         pm = [PairMatches(states[i].a, states[i].b, r["uv1"], r["uv2"], r["score"]) for i, r in sorted(results.items())]
         q = quantise_matches(pm, cfg.colmap.cell_size, cfg.colmap.max_error)
         n_kp, n_m = sum(map(len, q.keypoints.values())), sum(map(len, q.matches.values()))
-        # database.db: keypoints, matches and inliers (sqlite pages on top); sparse/: every keypoint, a point a match
-        staged.require(12 * n_kp + 20 * n_m + (256 << 10) + 24 * n_kp + 67 * n_m)
+        # database.db: keypoints, matches and inliers (sqlite pages on top); sparse/: every keypoint, a point a
+        # match; sparse_poses/: every keypoint again
+        staged.require(12 * n_kp + 20 * n_m + (256 << 10) + 24 * n_kp + 67 * n_m + 24 * n_kp)
         db_counts = write_database(stage / "database.db", rec, q, cfg.colmap.max_epipolar_error)
         timings["database"] = time.perf_counter() - t0
 
@@ -658,6 +661,7 @@ def run_colmap(
         t0 = time.perf_counter()
         tri = triangulate(rec, stage / "database.db", ws.image_dir, stage / "sparse", cfg)
         check_model_written(stage / "sparse", tri)
+        write_poses_model(stage / "sparse_poses", rec, q.keypoints)
         timings["triangulate"] = time.perf_counter() - t0
         sparse = {
             "points": int(tri.num_points3D()),
