@@ -5,9 +5,10 @@ binary or text) whose cameras and poses are used as given. The steps:
 
 1. **read** the model with pycolmap (:func:`open_workspace`);
 2. **pairs**: from ``--pairs``, else the images that share enough sparse points
-   (each image with its best ``colmap.pairs_per_image`` partners), else every
-   pair when the model has no points (:func:`select_pairs`); pairs without
-   enough baseline are skipped with a logged reason;
+   (each image with its best ``colmap.pairs_per_image`` partners), else, in a
+   model without (enough) points, from the poses: viewing-direction angle,
+   triangulation angle and distance (:func:`select_pairs`, :func:`pose_pairs`);
+   pairs without enough baseline are skipped with a logged reason;
 3. **per pair** (:func:`run_pair_task`, on a process pool or a Dask cluster):
    :func:`~sefm_recon.pipeline.reconstruct_pair` with the known relative pose;
    its points are moved into the world frame;
@@ -206,21 +207,106 @@ def covisibility(rec) -> Counter:
     return counts
 
 
-def select_pairs(rec, cfg: Config) -> tuple[list[tuple[int, int]], str]:
+def _axis_crossing(Ca, da, Cb, db) -> tuple[float, float] | None:
+    """Distances along two viewing axes to their closest approach; None when parallel or behind a camera."""
+    b = float(da @ db)
+    denom = 1.0 - b * b
+    if denom < 1e-6:  # axes within 0.08 degrees of parallel: no crossing to speak of
+        return None
+    w = Ca - Cb
+    d, e = float(da @ w), float(db @ w)
+    sa, sb = (b * e - d) / denom, (e - b * d) / denom
+    return (sa, sb) if sa > 0 and sb > 0 else None
+
+
+def pose_pairs(rec, cfg: Config, posed: list[int]) -> tuple[list[tuple[int, int]], list[dict]]:
+    """Pairs from the poses alone (a model without sparse points), and why each other candidate was dropped.
+
+    Like hloc's ``pairs_from_poses`` and COLMAP's MVS source-image selection:
+    a candidate pair is dropped when its viewing directions (optical axes) differ
+    by more than ``colmap.pair_max_view_angle_deg``, or when its rays meet at the
+    scene under less than ``geometry.min_tri_angle_deg``. The scene point of a
+    pair is where the two optical axes pass closest; for a pair whose axes do not
+    meet in front of both cameras, the point at the median of the other pairs'
+    distances along each axis (when no axes meet, the angle is not checked). Of the
+    rest, each image keeps its ``colmap.pairs_per_image`` nearest partners (camera
+    centre distance; 0 = all), and a pair is kept when either image keeps it.
+    Returns the pairs and, per dropped candidate, ``{"images", "reason"}``.
+    """
+    c = cfg.colmap
+    C = {i: centre_of(rec.images[i]) for i in posed}
+    D = {i: pose_of(rec.images[i])[0][2] for i in posed}  # optical axis in world coordinates: R^T (0, 0, 1)
+    name = {i: rec.images[i].name for i in posed}
+    crossings = {}
+    for a, b in combinations(posed, 2):
+        x = _axis_crossing(C[a], D[a], C[b], D[b])
+        if x is not None:
+            crossings[(a, b)] = x
+    depth = float(np.median([v for x in crossings.values() for v in x])) if crossings else None
+    if depth is None:
+        logger.info("no two optical axes meet in front of the cameras: the triangulation angle of pairs is "
+                    "not checked (scene depth unknown)")
+    dropped: list[dict] = []
+    ok: dict[tuple[int, int], float] = {}
+    for a, b in combinations(posed, 2):
+        base = float(np.linalg.norm(C[a] - C[b]))
+        view = float(np.degrees(np.arccos(np.clip(D[a] @ D[b], -1.0, 1.0))))
+        reason = None
+        if base <= 1e-9 * max(1.0, float(np.linalg.norm(C[a])), float(np.linalg.norm(C[b]))):
+            reason = "no baseline: both images have the same camera centre"
+        elif view > c.pair_max_view_angle_deg:
+            reason = (f"viewing directions {view:.1f} deg apart (colmap.pair_max_view_angle_deg = "
+                      f"{c.pair_max_view_angle_deg:g})")
+        elif depth is not None:
+            sa, sb = crossings.get((a, b), (depth, depth))
+            X = 0.5 * (C[a] + sa * D[a] + C[b] + sb * D[b])
+            tri = median_angle_deg(C[a], C[b], X[None])
+            if tri < cfg.geometry.min_tri_angle_deg:
+                reason = (f"triangulation angle {tri:.2f} deg at the scene (geometry.min_tri_angle_deg = "
+                          f"{cfg.geometry.min_tri_angle_deg:g})")
+        if reason:
+            dropped.append({"images": [name[a], name[b]], "reason": reason})
+        else:
+            ok[(a, b)] = base
+    keep = set(ok)
+    if c.pairs_per_image > 0:
+        near: dict[int, list[tuple[float, tuple[int, int]]]] = {}
+        for pair, base in ok.items():
+            for i in pair:
+                near.setdefault(i, []).append((base, pair))
+        keep = set()
+        for i, lst in near.items():
+            lst.sort()
+            keep.update(p for _, p in lst[: c.pairs_per_image])
+        for pair in sorted(set(ok) - keep):
+            dropped.append({"images": [name[pair[0]], name[pair[1]]],
+                            "reason": f"neither image has it among its {c.pairs_per_image} nearest partners "
+                                      f"(colmap.pairs_per_image)"})
+    return sorted(keep), dropped
+
+
+def select_pairs(rec, cfg: Config, dropped: list | None = None) -> tuple[list[tuple[int, int]], str]:
     """Pairs to match without a pairs file, and how they were chosen.
 
-    With sparse points: pairs sharing at least ``colmap.min_covisible`` points;
-    each image keeps its ``colmap.pairs_per_image`` best partners (0 = all), a
-    pair is kept when either image keeps it. Without points: every pair of
-    posed images.
+    With at least ``colmap.min_covisible`` sparse points: pairs sharing at least
+    that many points; each image keeps its ``colmap.pairs_per_image`` best
+    partners (0 = all), a pair is kept when either image keeps it. With fewer
+    points: pairs from the poses (:func:`pose_pairs`); ``dropped`` (a list)
+    receives why each other candidate pair was not kept.
     """
     posed = sorted(iid for iid, im in rec.images.items() if im.has_pose)
     if len(posed) < 2:
         raise InputError(f"the model has {len(posed)} image(s) with a pose; at least 2 are needed")
-    if rec.num_points3D() == 0:
-        pairs = list(combinations(posed, 2))
-        logger.debug("the model has no sparse points: matching every pair (%d)", len(pairs))
-        return pairs, "all"
+    if rec.num_points3D() < cfg.colmap.min_covisible:
+        pairs, drops = pose_pairs(rec, cfg, posed)
+        if dropped is not None:
+            dropped.extend(drops)
+        if not pairs:
+            raise InputError(f"no two of the {len(posed)} posed images view the scene from a usable angle "
+                             f"(see colmap.pair_max_view_angle_deg, geometry.min_tri_angle_deg): pass --pairs FILE")
+        logger.debug("the model has %d sparse points: %d pairs chosen from the poses, %d candidates dropped",
+                     rec.num_points3D(), len(pairs), len(drops))
+        return pairs, "poses"
     c = cfg.colmap
     counts = {k: v for k, v in covisibility(rec).items() if v >= c.min_covisible and k[0] in posed and k[1] in posed}
     if not counts:
@@ -567,6 +653,7 @@ def run_colmap(
     timings: dict[str, float] = {}
     ws = open_workspace(workspace, image_dir, sparse_dir)
     rec = ws.rec
+    candidates_dropped: list[dict] = []  # pairs from the poses: the candidates not chosen, and why
     if pairs_file is not None:
         pairs, how = read_pairs_file(pairs_file, rec), "file"
         unposed = sorted({rec.images[i].name for p in pairs for i in p if not rec.images[i].has_pose})
@@ -574,7 +661,7 @@ def run_colmap(
             raise InputError(f"pairs file {pairs_file} names image(s) without a pose in the model: "
                              f"{', '.join(unposed[:5])}")
     else:
-        pairs, how = select_pairs(rec, cfg)
+        pairs, how = select_pairs(rec, cfg, candidates_dropped)
     needed = sorted({rec.images[i].name for p in pairs for i in p})
     missing = [n for n in needed if not ws.image_path(n).is_file()]
     if missing:
@@ -683,6 +770,7 @@ def run_colmap(
             "image_dir": str(ws.image_dir.resolve()),
             "sparse_dir": str(ws.sparse_dir.resolve()),
             "pair_selection": how,
+            "pair_candidates_dropped": candidates_dropped,
             "image_size": {im.name: [im.camera.width, im.camera.height] for im in rec.images.values()},
             "config": cfg.to_dict(),
             "timings_s": {k: round(v, 4) for k, v in timings.items()},
