@@ -219,6 +219,21 @@ def _axis_crossing(Ca, da, Cb, db) -> tuple[float, float] | None:
     return (sa, sb) if sa > 0 and sb > 0 else None
 
 
+def _best_partners(rank: dict[tuple[int, int], float], n: int) -> set[tuple[int, int]]:
+    """The pairs kept when each image keeps its ``n`` lowest-``rank`` pairs (ties: lower ids; 0 = all)."""
+    if n <= 0:
+        return set(rank)
+    per_image: dict[int, list[tuple[float, tuple[int, int]]]] = {}
+    for pair, r in rank.items():
+        for i in pair:
+            per_image.setdefault(i, []).append((r, pair))
+    keep: set[tuple[int, int]] = set()
+    for lst in per_image.values():
+        lst.sort()
+        keep.update(p for _, p in lst[:n])
+    return keep
+
+
 def pose_pairs(rec, cfg: Config, posed: list[int]) -> tuple[list[tuple[int, int]], list[dict]]:
     """Pairs from the poses alone (a model without sparse points), and why each other candidate was dropped.
 
@@ -268,16 +283,8 @@ def pose_pairs(rec, cfg: Config, posed: list[int]) -> tuple[list[tuple[int, int]
             dropped.append({"images": [name[a], name[b]], "reason": reason})
         else:
             ok[(a, b)] = base
-    keep = set(ok)
+    keep = _best_partners(ok, c.pairs_per_image)  # smallest baseline first
     if c.pairs_per_image > 0:
-        near: dict[int, list[tuple[float, tuple[int, int]]]] = {}
-        for pair, base in ok.items():
-            for i in pair:
-                near.setdefault(i, []).append((base, pair))
-        keep = set()
-        for i, lst in near.items():
-            lst.sort()
-            keep.update(p for _, p in lst[: c.pairs_per_image])
         for pair in sorted(set(ok) - keep):
             dropped.append({"images": [name[pair[0]], name[pair[1]]],
                             "reason": f"neither image has it among its {c.pairs_per_image} nearest partners "
@@ -312,16 +319,7 @@ def select_pairs(rec, cfg: Config, dropped: list | None = None) -> tuple[list[tu
     if not counts:
         raise InputError(f"no two images share {c.min_covisible} or more sparse points: pass --pairs FILE "
                          f"or lower colmap.min_covisible (--set colmap.min_covisible=N)")
-    keep = set(counts)
-    if c.pairs_per_image > 0:
-        best: dict[int, list[tuple[int, tuple[int, int]]]] = {}
-        for pair, n in counts.items():
-            for i in pair:
-                best.setdefault(i, []).append((n, pair))
-        keep = set()
-        for i, lst in best.items():
-            lst.sort(key=lambda x: (-x[0], x[1]))
-            keep.update(p for _, p in lst[: c.pairs_per_image])
+    keep = _best_partners({k: -v for k, v in counts.items()}, c.pairs_per_image)  # most shared points first
     pairs = sorted(keep)
     logger.debug("%d pairs share at least %d sparse points; %d kept (best %s per image)", len(counts),
                 c.min_covisible, len(pairs), c.pairs_per_image or "all")
