@@ -10,7 +10,7 @@ PIP    := PYTHONWARNINGS=ignore $(BIN)/pip install -q --disable-pip-version-chec
 SAMPLE := data_samples/scene
 DEMO   := demo_out
 
-.PHONY: install install-test sysdeps demo test bench sample clean
+.PHONY: install install-test sysdeps colmap demo test bench sample clean
 
 # The package alone (what demo, bench and sample need); install-test adds pytest and hypothesis.
 install: sysdeps $(STAMP)
@@ -25,6 +25,18 @@ sysdeps:
 	  else \
 	    echo "error: open3d needs the system library libusb-1.0-0: run 'sudo apt-get install libusb-1.0-0' and then make again" >&2; \
 	    exit 1; \
+	  fi; \
+	fi
+
+# The COLMAP binary, for the integration test that runs the README's COLMAP steps (it skips without
+# one): the distribution's package (COLMAP 3.8 on Debian 12), installed when root with apt-get.
+colmap:
+	@if ! command -v colmap >/dev/null 2>&1; then \
+	  if [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then \
+	    echo "installing colmap (for the COLMAP integration test) with apt-get"; \
+	    apt-get update -qq >/dev/null && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq colmap >/dev/null; \
+	  else \
+	    echo "note: no colmap binary; the COLMAP integration test will skip ('sudo apt-get install colmap')"; \
 	  fi; \
 	fi
 
@@ -43,7 +55,7 @@ demo: install
 	  --camera "$$(cat $(SAMPLE)/camera.txt)" -o $(DEMO) --overwrite
 	@echo "open $(DEMO)/points.ply or $(DEMO)/mesh.ply in MeshLab; $(DEMO)/matches.png shows the matches"
 
-test: install-test
+test: install-test colmap
 	$(BIN)/python -m pytest -q
 
 bench: install

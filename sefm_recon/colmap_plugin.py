@@ -5,16 +5,19 @@ binary or text) whose cameras and poses are used as given. The steps:
 
 1. **read** the model with pycolmap (:func:`open_workspace`);
 2. **pairs**: from ``--pairs``, else the images that share enough sparse points
-   (each image with its best ``colmap.pairs_per_image`` partners), else every
-   pair when the model has no points (:func:`select_pairs`); pairs without
-   enough baseline are skipped with a logged reason;
+   (each image with its best ``colmap.pairs_per_image`` partners), else, in a
+   model without (enough) points, from the poses: viewing-direction angle,
+   triangulation angle and distance (:func:`select_pairs`, :func:`pose_pairs`);
+   pairs without enough baseline are skipped with a logged reason;
 3. **per pair** (:func:`run_pair_task`, on a process pool or a Dask cluster):
    :func:`~sefm_recon.pipeline.reconstruct_pair` with the known relative pose;
    its points are moved into the world frame;
 4. **fuse** every pair's points (:mod:`sefm_recon.reconstruct.fuse`);
 5. **database**: the dense matches quantised to keypoints, the matches and their
    two-view geometries (:mod:`sefm_recon.io.colmap_database`);
-6. **triangulate** those matches with the given poses (``pycolmap.triangulate_points``).
+6. **triangulate** those matches with the given poses (``pycolmap.triangulate_points``),
+   and write ``sparse_poses/``: the poses with the database's keypoints and no
+   points, the input COLMAP's own ``point_triangulator`` needs.
 
 Everything is written into a staging folder and moved into OUT at the end.
 """
@@ -58,9 +61,9 @@ __all__ = [
 MODEL_STEMS = ("cameras", "images")
 #: What ``sefm-recon colmap`` writes into OUT; with ``--overwrite`` these are
 #: replaced, everything else in OUT is kept.
-COLMAP_RESULTS = ("pairs", "fused.ply", "database.db", "sparse", "report.json")
+COLMAP_RESULTS = ("pairs", "fused.ply", "database.db", "sparse", "sparse_poses", "report.json")
 #: Inside those folders, the files it writes; with ``--overwrite`` the user's other files there are kept.
-COLMAP_OWNED = {"pairs": ("*/matches.npz", "*/points.ply"), "sparse": MODEL_FILES}
+COLMAP_OWNED = {"pairs": ("*/matches.npz", "*/points.ply"), "sparse": MODEL_FILES, "sparse_poses": MODEL_FILES}
 
 
 # ---------------------------------------------------------------------------- workspace
@@ -204,36 +207,119 @@ def covisibility(rec) -> Counter:
     return counts
 
 
-def select_pairs(rec, cfg: Config) -> tuple[list[tuple[int, int]], str]:
+def _axis_crossing(Ca, da, Cb, db) -> tuple[float, float] | None:
+    """Distances along two viewing axes to their closest approach; None when parallel or behind a camera."""
+    b = float(da @ db)
+    denom = 1.0 - b * b
+    if denom < 1e-6:  # axes within 0.08 degrees of parallel: no crossing to speak of
+        return None
+    w = Ca - Cb
+    d, e = float(da @ w), float(db @ w)
+    sa, sb = (b * e - d) / denom, (e - b * d) / denom
+    return (sa, sb) if sa > 0 and sb > 0 else None
+
+
+def _best_partners(rank: dict[tuple[int, int], float], n: int) -> set[tuple[int, int]]:
+    """The pairs kept when each image keeps its ``n`` lowest-``rank`` pairs (ties: lower ids; 0 = all)."""
+    if n <= 0:
+        return set(rank)
+    per_image: dict[int, list[tuple[float, tuple[int, int]]]] = {}
+    for pair, r in rank.items():
+        for i in pair:
+            per_image.setdefault(i, []).append((r, pair))
+    keep: set[tuple[int, int]] = set()
+    for lst in per_image.values():
+        lst.sort()
+        keep.update(p for _, p in lst[:n])
+    return keep
+
+
+def pose_pairs(rec, cfg: Config, posed: list[int]) -> tuple[list[tuple[int, int]], list[dict]]:
+    """Pairs from the poses alone (a model without sparse points), and why each other candidate was dropped.
+
+    Like hloc's ``pairs_from_poses`` and COLMAP's MVS source-image selection:
+    a candidate pair is dropped when its viewing directions (optical axes) differ
+    by more than ``colmap.pair_max_view_angle_deg``, or when its rays meet at the
+    scene under less than ``geometry.min_tri_angle_deg``. The scene point of a
+    pair is where the two optical axes pass closest; for a pair whose axes do not
+    meet in front of both cameras, the point at the median of the other pairs'
+    distances along each axis (when no axes meet, the angle is not checked). Of the
+    rest, each image keeps its ``colmap.pairs_per_image`` nearest partners (camera
+    centre distance; 0 = all), and a pair is kept when either image keeps it.
+    Returns the pairs and, per dropped candidate, ``{"images", "reason"}``.
+    """
+    c = cfg.colmap
+    C = {i: centre_of(rec.images[i]) for i in posed}
+    D = {i: pose_of(rec.images[i])[0][2] for i in posed}  # optical axis in world coordinates: R^T (0, 0, 1)
+    name = {i: rec.images[i].name for i in posed}
+    crossings = {}
+    for a, b in combinations(posed, 2):
+        x = _axis_crossing(C[a], D[a], C[b], D[b])
+        if x is not None:
+            crossings[(a, b)] = x
+    depth = float(np.median([v for x in crossings.values() for v in x])) if crossings else None
+    if depth is None:
+        logger.info("no two optical axes meet in front of the cameras: the triangulation angle of pairs is "
+                    "not checked (scene depth unknown)")
+    dropped: list[dict] = []
+    ok: dict[tuple[int, int], float] = {}
+    for a, b in combinations(posed, 2):
+        base = float(np.linalg.norm(C[a] - C[b]))
+        view = float(np.degrees(np.arccos(np.clip(D[a] @ D[b], -1.0, 1.0))))
+        reason = None
+        if base <= 1e-9 * max(1.0, float(np.linalg.norm(C[a])), float(np.linalg.norm(C[b]))):
+            reason = "no baseline: both images have the same camera centre"
+        elif view > c.pair_max_view_angle_deg:
+            reason = (f"viewing directions {view:.1f} deg apart (colmap.pair_max_view_angle_deg = "
+                      f"{c.pair_max_view_angle_deg:g})")
+        elif depth is not None:
+            sa, sb = crossings.get((a, b), (depth, depth))
+            X = 0.5 * (C[a] + sa * D[a] + C[b] + sb * D[b])
+            tri = median_angle_deg(C[a], C[b], X[None])
+            if tri < cfg.geometry.min_tri_angle_deg:
+                reason = (f"triangulation angle {tri:.2f} deg at the scene (geometry.min_tri_angle_deg = "
+                          f"{cfg.geometry.min_tri_angle_deg:g})")
+        if reason:
+            dropped.append({"images": [name[a], name[b]], "reason": reason})
+        else:
+            ok[(a, b)] = base
+    keep = _best_partners(ok, c.pairs_per_image)  # smallest baseline first
+    if c.pairs_per_image > 0:
+        for pair in sorted(set(ok) - keep):
+            dropped.append({"images": [name[pair[0]], name[pair[1]]],
+                            "reason": f"neither image has it among its {c.pairs_per_image} nearest partners "
+                                      f"(colmap.pairs_per_image)"})
+    return sorted(keep), dropped
+
+
+def select_pairs(rec, cfg: Config, dropped: list | None = None) -> tuple[list[tuple[int, int]], str]:
     """Pairs to match without a pairs file, and how they were chosen.
 
-    With sparse points: pairs sharing at least ``colmap.min_covisible`` points;
-    each image keeps its ``colmap.pairs_per_image`` best partners (0 = all), a
-    pair is kept when either image keeps it. Without points: every pair of
-    posed images.
+    With at least ``colmap.min_covisible`` sparse points: pairs sharing at least
+    that many points; each image keeps its ``colmap.pairs_per_image`` best
+    partners (0 = all), a pair is kept when either image keeps it. With fewer
+    points: pairs from the poses (:func:`pose_pairs`); ``dropped`` (a list)
+    receives why each other candidate pair was not kept.
     """
     posed = sorted(iid for iid, im in rec.images.items() if im.has_pose)
     if len(posed) < 2:
         raise InputError(f"the model has {len(posed)} image(s) with a pose; at least 2 are needed")
-    if rec.num_points3D() == 0:
-        pairs = list(combinations(posed, 2))
-        logger.debug("the model has no sparse points: matching every pair (%d)", len(pairs))
-        return pairs, "all"
+    if rec.num_points3D() < cfg.colmap.min_covisible:
+        pairs, drops = pose_pairs(rec, cfg, posed)
+        if dropped is not None:
+            dropped.extend(drops)
+        if not pairs:
+            raise InputError(f"no two of the {len(posed)} posed images view the scene from a usable angle "
+                             f"(see colmap.pair_max_view_angle_deg, geometry.min_tri_angle_deg): pass --pairs FILE")
+        logger.debug("the model has %d sparse points: %d pairs chosen from the poses, %d candidates dropped",
+                     rec.num_points3D(), len(pairs), len(drops))
+        return pairs, "poses"
     c = cfg.colmap
     counts = {k: v for k, v in covisibility(rec).items() if v >= c.min_covisible and k[0] in posed and k[1] in posed}
     if not counts:
         raise InputError(f"no two images share {c.min_covisible} or more sparse points: pass --pairs FILE "
                          f"or lower colmap.min_covisible (--set colmap.min_covisible=N)")
-    keep = set(counts)
-    if c.pairs_per_image > 0:
-        best: dict[int, list[tuple[int, tuple[int, int]]]] = {}
-        for pair, n in counts.items():
-            for i in pair:
-                best.setdefault(i, []).append((n, pair))
-        keep = set()
-        for i, lst in best.items():
-            lst.sort(key=lambda x: (-x[0], x[1]))
-            keep.update(p for _, p in lst[: c.pairs_per_image])
+    keep = _best_partners({k: -v for k, v in counts.items()}, c.pairs_per_image)  # most shared points first
     pairs = sorted(keep)
     logger.debug("%d pairs share at least %d sparse points; %d kept (best %s per image)", len(counts),
                 c.min_covisible, len(pairs), c.pairs_per_image or "all")
@@ -553,7 +639,7 @@ def run_colmap(
 ) -> dict:
     """``sefm-recon colmap``: reconstruct a COLMAP workspace densely into ``out``; returns the report."""
     from .io.colmap_database import PairMatches, quantise_matches, write_database
-    from .io.colmap_model import check_model_written
+    from .io.colmap_model import check_model_written, write_poses_model
     from .io.output import StagedOutput, check_output_dir
     from .io.ply import write_point_cloud
     from .reconstruct.fuse import fuse_point_clouds
@@ -565,6 +651,7 @@ def run_colmap(
     timings: dict[str, float] = {}
     ws = open_workspace(workspace, image_dir, sparse_dir)
     rec = ws.rec
+    candidates_dropped: list[dict] = []  # pairs from the poses: the candidates not chosen, and why
     if pairs_file is not None:
         pairs, how = read_pairs_file(pairs_file, rec), "file"
         unposed = sorted({rec.images[i].name for p in pairs for i in p if not rec.images[i].has_pose})
@@ -572,7 +659,7 @@ def run_colmap(
             raise InputError(f"pairs file {pairs_file} names image(s) without a pose in the model: "
                              f"{', '.join(unposed[:5])}")
     else:
-        pairs, how = select_pairs(rec, cfg)
+        pairs, how = select_pairs(rec, cfg, candidates_dropped)
     needed = sorted({rec.images[i].name for p in pairs for i in p})
     missing = [n for n in needed if not ws.image_path(n).is_file()]
     if missing:
@@ -649,8 +736,9 @@ def run_colmap(
         pm = [PairMatches(states[i].a, states[i].b, r["uv1"], r["uv2"], r["score"]) for i, r in sorted(results.items())]
         q = quantise_matches(pm, cfg.colmap.cell_size, cfg.colmap.max_error)
         n_kp, n_m = sum(map(len, q.keypoints.values())), sum(map(len, q.matches.values()))
-        # database.db: keypoints, matches and inliers (sqlite pages on top); sparse/: every keypoint, a point a match
-        staged.require(12 * n_kp + 20 * n_m + (256 << 10) + 24 * n_kp + 67 * n_m)
+        # database.db: keypoints, matches and inliers (sqlite pages on top); sparse/: every keypoint, a point a
+        # match; sparse_poses/: every keypoint again
+        staged.require(12 * n_kp + 20 * n_m + (256 << 10) + 24 * n_kp + 67 * n_m + 24 * n_kp)
         db_counts = write_database(stage / "database.db", rec, q, cfg.colmap.max_epipolar_error)
         timings["database"] = time.perf_counter() - t0
 
@@ -658,6 +746,7 @@ def run_colmap(
         t0 = time.perf_counter()
         tri = triangulate(rec, stage / "database.db", ws.image_dir, stage / "sparse", cfg)
         check_model_written(stage / "sparse", tri)
+        write_poses_model(stage / "sparse_poses", rec, q.keypoints)
         timings["triangulate"] = time.perf_counter() - t0
         sparse = {
             "points": int(tri.num_points3D()),
@@ -679,6 +768,7 @@ def run_colmap(
             "image_dir": str(ws.image_dir.resolve()),
             "sparse_dir": str(ws.sparse_dir.resolve()),
             "pair_selection": how,
+            "pair_candidates_dropped": candidates_dropped,
             "image_size": {im.name: [im.camera.width, im.camera.height] for im in rec.images.values()},
             "config": cfg.to_dict(),
             "timings_s": {k: round(v, 4) for k, v in timings.items()},

@@ -119,7 +119,7 @@ class GeometryConfig:
             "wrong matches count as inliers")
     min_tri_angle_deg: float = _setting(
         0.5, "a pair whose SIFT inliers' median triangulation angle is below this has no baseline: refused "
-             "(sefm-recon pair) or skipped (sefm-recon colmap)", unit="degrees", range=Range(0, 90),
+             "(sefm-recon pair) or skipped (sefm-recon colmap; pairs from the poses: its rays' angle at the scene)", unit="degrees", range=Range(0, 90),
         why="an angle between two rays; cameras that see one surface from both sides of 90 degrees face each "
             "other and see different sides of it")
     depth_margin: float = 2.0  #: search depths from p1/margin to p99*margin of the SIFT points' depths
@@ -295,10 +295,17 @@ class ColmapConfig:
         why="one shared point is the least overlap; no two images share more points than COLMAP extracts "
             "features per image (8192 by default), so 100 000 would pair nothing")
     pairs_per_image: int = _setting(
-        4, "each image keeps this many partners, those it shares the most points with (0 = all)", unit="images",
+        4, "each image keeps this many partners, those it shares the most points with, or (a model without "
+           "points) those with the closest viewing direction (0 = all)", unit="images",
         range=Range(0, 10_000),
         why="a count of images; 10 000 partners is more than a workspace matched pair by pair holds, and would "
             "mean all, like 0")
+    pair_max_view_angle_deg: float = _setting(
+        50.0, "a model without points: images whose viewing directions differ by more than this are not "
+              "paired", unit="degrees", range=Range(0, 180, low_open=True),
+        why="dense matching agrees across three views at 1 px for 0.83 of points under 15 degrees but 0.38 at "
+            "30-50 degrees (issue 18); hloc's pairs_from_poses and COLMAP's MVS pick partners within 45-60 "
+            "degrees; 180 keeps every direction")
     cell_size: float = _setting(
         2.0, "database.db keypoints: at most one per cell of this size, placed where the matches in it agree "
              "(as hloc's match_dense)", unit="px", range=Range(0.5, 64),

@@ -121,7 +121,8 @@ def test_writes_every_output(text_run):
     report = json.loads((out / "report.json").read_text())
     for key in ("version", "config", "timings_s", "counts", "image_size", "pairs", "sparse", "fusion"):
         assert key in report
-    assert report["pair_selection"] == "all"  # the model has no points
+    assert report["pair_selection"] == "poses"  # the model has no points
+    assert report["pair_candidates_dropped"] == []  # three views within 50 degrees: every pair kept
     assert report["counts"]["pairs_done"] == 3
     for key in ("sift_matches", "dense_matches", "valid_matches", "points"):
         assert report["counts"][key] > 0
@@ -373,8 +374,15 @@ def test_pair_without_baseline_is_skipped_with_a_reason(tmp_path, caplog):
                                      rec.images[1].cam_from_world())
     rec.write_text(str(ws / "sparse"))
     (ws / "images" / "again.png").write_bytes((ws / "images" / "view_000.png").read_bytes())
+    # pairs from the poses drop it before matching, with the reason
+    dropped = []
+    pairs, how = select_pairs(rec, _cfg(), dropped)
+    assert how == "poses" and pairs == [(1, 2), (2, 3)]
+    assert [(sorted(d["images"]), d["reason"][:11]) for d in dropped] == [(["again.png", "view_000.png"], "no baseline")]
+    # a pairs file naming it: skipped at matching, the others run
+    (tmp_path / "pairs.txt").write_text("view_000.png view_001.png\nview_000.png again.png\nview_001.png again.png\n")
     with caplog.at_level("WARNING"):
-        report = run_colmap(ws, tmp_path / "out", _cfg(), workers=1)
+        report = run_colmap(ws, tmp_path / "out", _cfg(), pairs_file=tmp_path / "pairs.txt", workers=1)
     skipped = [e for e in report["pairs"] if e["status"] == "skipped"]
     assert [sorted(e["images"]) for e in skipped] == [["again.png", "view_000.png"]]
     assert "no baseline" in skipped[0]["reason"] and "no baseline" in caplog.text
@@ -411,6 +419,69 @@ def test_covisibility_pair_selection():
     assert pairs == [(1, 2), (1, 4), (2, 3)]  # 4's best is 1, 3's best is 2
     with pytest.raises(InputError, match="min_covisible"):
         select_pairs(rec, _cfg("colmap.min_covisible=100"))
+
+
+def _posed_model(centres, targets):
+    """A model without points: PINHOLE cameras at ``centres`` looking at ``targets`` (y down)."""
+    rec = pycolmap.Reconstruction()
+    for i, (c, t) in enumerate(zip(centres, targets), start=1):
+        z = np.asarray(t, float) - c
+        z /= np.linalg.norm(z)
+        x = np.cross([0.0, 1.0, 0.0], z)
+        x = x / np.linalg.norm(x) if np.linalg.norm(x) > 1e-9 else np.array([1.0, 0, 0])
+        R = np.stack([x, np.cross(z, x), z])
+        rec.add_camera_with_trivial_rig(pycolmap.Camera(camera_id=i, model="PINHOLE", width=100, height=100,
+                                                        params=[100, 100, 50, 50]))
+        rec.add_image_with_trivial_frame(pycolmap.Image(name=f"{i:02d}.png", camera_id=i, image_id=i),
+                                         pycolmap.Rigid3d(np.hstack([R, (-R @ c).reshape(3, 1)])))
+    return rec
+
+
+def test_pairs_from_poses_on_a_ring():
+    """16 views on a ring round an object (22.5 deg apart, like dinoSparseRing): each image's neighbours
+    within 50 deg are paired, never views 67.5 deg or more apart (the all-pairs rule paired views 180 deg apart)."""
+    ang = np.radians(np.arange(16) * 22.5)
+    centres = np.c_[5 * np.cos(ang), np.zeros(16), 5 * np.sin(ang)]
+    rec = _posed_model(centres, np.zeros((16, 3)))
+    dropped = []
+    pairs, how = select_pairs(rec, _cfg(), dropped)
+    assert how == "poses"
+    ring = lambda a, b: min((a - b) % 16, (b - a) % 16)  # noqa: E731 - steps round the ring
+    assert sorted({ring(a - 1, b - 1) for a, b in pairs}) == [1, 2]
+    assert len(pairs) == 32  # 16 neighbours 1 step apart + 16 at 2 steps
+    assert len(dropped) == 16 * 15 // 2 - 32
+    reasons = {ring(int(d["images"][0][:2]) - 1, int(d["images"][1][:2]) - 1): d["reason"] for d in dropped}
+    assert reasons[3].startswith("viewing directions 67.5 deg apart") and "pair_max_view_angle_deg = 50" in reasons[3]
+    assert reasons[8].startswith("viewing directions 180.0 deg apart")
+    # fewer partners: the nearest only; the next ones are dropped with that reason
+    dropped = []
+    pairs, _ = select_pairs(rec, _cfg("colmap.pairs_per_image=1"), dropped)
+    assert {ring(a - 1, b - 1) for a, b in pairs} == {1}
+    assert {i for pair in pairs for i in pair} == set(range(1, 17))  # every image keeps a partner
+    assert sum("nearest partners" in d["reason"] for d in dropped) == 32 - len(pairs)
+    # a wider limit takes the 67.5 deg neighbours too
+    pairs, _ = select_pairs(rec, _cfg("colmap.pairs_per_image=0", "colmap.pair_max_view_angle_deg=70"))
+    assert sorted({ring(a - 1, b - 1) for a, b in pairs}) == [1, 2, 3]
+
+
+def test_pairs_from_poses_drop_small_triangulation_angles():
+    """A camera 1 cm beside another, both 5 m from the object they look at (0.11 deg): dropped with the angle."""
+    centres = np.array([[0.0, 0, -5], [0.01, 0, -5], [1.0, 0, -5], [2.0, 0, -5]])
+    rec = _posed_model(centres, np.zeros((4, 3)))
+    dropped = []
+    pairs, _ = select_pairs(rec, _cfg(), dropped)
+    assert (1, 2) not in pairs and (1, 3) in pairs and (3, 4) in pairs
+    (d,) = [d for d in dropped if d["images"] == ["01.png", "02.png"]]
+    assert d["reason"].startswith("triangulation angle 0.11 deg")
+    pairs, _ = select_pairs(rec, _cfg("geometry.min_tri_angle_deg=0"))
+    assert (1, 2) in pairs
+
+
+def test_pairs_file_overrides_pairs_from_poses(tiny_ws, tmp_path):
+    rec = pycolmap.Reconstruction(str(tiny_ws / "sparse"))
+    f = tmp_path / "p.txt"
+    f.write_text("view_000.png view_002.png\n")
+    assert read_pairs_file(f, rec) == [(1, 3)]
 
 
 def test_quantisation_links_pairs_into_tracks():

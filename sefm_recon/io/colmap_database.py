@@ -26,12 +26,17 @@ within ``max_epipolar_error`` px of their epipolar line.
 Cameras, rigs, frames and images are copied from the workspace model with their
 ids, so the database and the model agree (which ``pycolmap.triangulate_points``
 requires).
+
+The file is written by pycolmap 4 and then given the ``images`` columns of the
+older schema (:func:`add_legacy_columns`), so that COLMAP 3.8 (what Debian 12
+and Ubuntu 24.04 install) opens it as well as current COLMAP and pycolmap.
 """
 
 from __future__ import annotations
 
 import logging
 import os
+import sqlite3
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -43,7 +48,15 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
-__all__ = ["PairMatches", "Quantised", "quantise_matches", "two_view_geometry", "write_database"]
+__all__ = ["PairMatches", "Quantised", "add_legacy_columns", "quantise_matches", "two_view_geometry",
+           "write_database"]
+
+#: Columns of the ``images`` table up to COLMAP 3.8 that pycolmap 4 (COLMAP >= 3.10 keeps pose priors
+#: in their own table) no longer writes. COLMAP 3.8 reads ``SELECT * FROM images`` by column position
+#: (image_id, name, camera_id, then these seven), so without them it stops with "SQL logic error".
+#: Current COLMAP names its columns and ignores extra ones. NULL is what 3.8 itself stores for "no
+#: prior" (its NaN default; SQLite stores NaN as NULL).
+LEGACY_IMAGE_COLUMNS = ("prior_qw", "prior_qx", "prior_qy", "prior_qz", "prior_tx", "prior_ty", "prior_tz")
 
 
 @dataclass
@@ -277,6 +290,31 @@ def write_database(
         }
     finally:
         db.close()
+    add_legacy_columns(path)
     log.info("database: %d keypoints, %d matches (%d geometric inliers) over %d pairs",
              counts["db_keypoints"], n_matches, n_inliers, n_pairs)
     return counts
+
+
+def add_legacy_columns(path: str | os.PathLike) -> list[str]:
+    """Add the ``images`` columns COLMAP 3.8 expects (:data:`LEGACY_IMAGE_COLUMNS`) where missing.
+
+    ``ALTER TABLE ... ADD COLUMN`` appends them after ``camera_id``, the positions
+    3.8 reads them from. Returns the columns added (none for a database that has them).
+    """
+    con = sqlite3.connect(str(path))
+    try:
+        have = [row[1] for row in con.execute("PRAGMA table_info(images)")]
+        extra = have[3:]
+        if have[:3] != ["image_id", "name", "camera_id"] or extra != list(LEGACY_IMAGE_COLUMNS[:len(extra)]):
+            # columns we do not know sit where 3.8 reads its priors: appending would not help it
+            log.warning("database %s: images table has columns %s; left as it is (COLMAP 3.8 may not read it)",
+                        path, have)
+            return []
+        added = [c for c in LEGACY_IMAGE_COLUMNS if c not in have]
+        with con:
+            for c in added:
+                con.execute(f"ALTER TABLE images ADD COLUMN {c} REAL")
+    finally:
+        con.close()
+    return added

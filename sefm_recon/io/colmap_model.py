@@ -41,7 +41,7 @@ if TYPE_CHECKING:  # pycolmap is imported lazily (keeps `sefm-recon --help` fast
 
 log = logging.getLogger(__name__)
 
-__all__ = ["MODEL_FILES", "check_model_written", "read_model", "write_two_view_model"]
+__all__ = ["MODEL_FILES", "check_model_written", "read_model", "write_poses_model", "write_two_view_model"]
 
 #: Files a COLMAP sparse model folder may contain (binary or text).
 MODEL_FILES = frozenset(
@@ -238,3 +238,29 @@ def read_model(path: str | os.PathLike) -> pycolmap.Reconstruction:
         return pycolmap.Reconstruction(str(path))
     except ValueError as e:  # pycolmap raises ValueError for missing files
         raise FileNotFoundError(f"no COLMAP model in {path}: {e}") from e
+
+
+def write_poses_model(folder: str | os.PathLike, rec: pycolmap.Reconstruction,
+                      keypoints: dict[int, np.ndarray]) -> pycolmap.Reconstruction:
+    """Write the input model for ``colmap point_triangulator``: cameras and poses, no 3-D points.
+
+    Each image's 2-D points are its ``database.db`` keypoints (``keypoints``:
+    image_id -> (K, 2); images absent get none), so the model agrees with the
+    database whatever 2-D points the user's model held: COLMAP's triangulator
+    stops when an image has 2-D points and their count differs from the
+    database's. Returns the model written (binary, in ``folder``, created).
+    """
+    import pycolmap
+
+    folder = Path(folder)
+    model = pycolmap.Reconstruction(rec)  # a copy: the caller's model keeps its points
+    for pid in list(model.point3D_ids()):
+        model.delete_point3D(pid)
+    for image_id, im in model.images.items():
+        kp = np.asarray(keypoints.get(image_id, np.zeros((0, 2))), np.float64).reshape(-1, 2)
+        im.points2D.clear()  # pycolmap only assigns 2-D points to an image that has none
+        im.points2D = pycolmap.Point2DList([pycolmap.Point2D(xy) for xy in kp])
+    folder.mkdir(parents=True, exist_ok=True)
+    model.write_binary(str(folder))
+    check_model_written(folder, model)
+    return model
