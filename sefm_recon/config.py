@@ -89,19 +89,27 @@ class SiftConfig:
     """SIFT features for the two-view pose (``sefm-recon pair``)."""
 
     max_features: int = _setting(
-        4096, "SIFT features kept per image (the strongest)", unit="features", range=Range(5, 100_000),
+        8192, "SIFT features kept per image (the strongest); 8192 is COLMAP's default", unit="features",
+        range=Range(5, 100_000),
         why="the five-point pose needs 5 matches (and at least geometry.min_inliers are needed); beyond 100 000, "
-            "25 times the default, SIFT and its matching only get slower: a pose needs tens of well spread inliers")
+            "12 times the default, SIFT and its matching only get slower: a pose needs tens of well spread inliers")
     max_ratio: float = _setting(
         0.8, "Lowe's ratio test: a match's descriptor distance over the second-best one's must be below this",
         range=Range(0, 1, low_open=True),
         why="a ratio of two distances, the best one first: at 1 every mutual nearest neighbour passes, at 0 none")
     max_image_size: int = _setting(
-        1024, "SIFT runs on copies downscaled to this longest side (photos longer than 2:1: to this "
-              "size squared over 2 pixels)", unit="px",
+        3200, "SIFT runs on copies downscaled to this longest side (photos longer than 2:1: to this "
+              "size squared over 2 pixels); 3200 is COLMAP's default", unit="px",
         range=Range(64, MAX_SIDE, special=(0, "full size")),
         why="images under 64 px on a side are refused as too small to match; above 100 000 px (beyond any "
             "camera's sensor) the value would mean full size, like 0")
+    upsample_max_size: int = _setting(
+        1600, "SIFT starts at octave -1 (the photo upsampled 2x, as COLMAP always does) when the photo SIFT sees "
+              "has a longest side of at most this: small photos gain their finest features, large ones have "
+              "enough and would pay 4 times the pixels", unit="px",
+        range=Range(0, MAX_SIDE),
+        why="0 never upsamples; at the default the upsampled copy is at most 3200 px, COLMAP's own largest "
+            "SIFT image; above 100 000 px (beyond any camera's sensor) every photo is upsampled anyway")
 
 
 @dataclass
@@ -115,7 +123,7 @@ class GeometryConfig:
     ransac_max_error: float = _setting(
         2.0, "RANSAC inlier threshold: largest distance of a SIFT match from its epipolar line", unit="px",
         range=Range(0, 50, low_open=True),
-        why="a distance; SIFT positions are good to a pixel or two, and at 50 px (5 % of a 1024 px SIFT image) "
+        why="a distance; SIFT positions are good to a pixel or two, and at 50 px (5 % of a 1000 px photo) "
             "wrong matches count as inliers")
     min_tri_angle_deg: float = _setting(
         0.5, "a pair whose SIFT inliers' median triangulation angle is below this has no baseline: refused "

@@ -114,7 +114,8 @@ def reconstruct_pair(
     t0 = time.perf_counter()
     xy1, xy2 = sift_correspondences(to_gray(v1.image), to_gray(v2.image), cfg.sift.max_features, cfg.sift.max_ratio,
                                     min_features=cfg.geometry.min_inliers if pose is None else 0,
-                                    names=names, max_size=cfg.sift.max_image_size)
+                                    names=names, max_size=cfg.sift.max_image_size,
+                                    upsample_max_size=cfg.sift.upsample_max_size)
     if pose is None:
         g = cfg.geometry
         tv = estimate_two_view(xy1, xy2, v1.K, v2.K, v1.size, v2.size, g.min_inliers, g.ransac_max_error,

@@ -61,11 +61,15 @@ def sift_scale(w: int, h: int, max_size: int) -> float:
     return min(1.0, max(max_size / max(w, h), float(np.sqrt(max_size * max_size / 2.0 / (w * h)))))
 
 
-def extract_sift(gray: np.ndarray, max_features: int = 8192, max_size: int = 0) -> tuple[np.ndarray, np.ndarray]:
+def extract_sift(gray: np.ndarray, max_features: int = 8192, max_size: int = 0,
+                 upsample_max_size: int = 0) -> tuple[np.ndarray, np.ndarray]:
     """SIFT keypoints and descriptors with pycolmap (COLMAP's CPU SIFT).
 
     Args:
         gray: (H, W) uint8 image.
+        max_size: longest side SIFT works at (:func:`sift_scale`; 0 = full size).
+        upsample_max_size: start at octave -1 (COLMAP's default) when the image
+            SIFT works on is no longer than this; else at octave 0.
     Returns:
         xy (N, 2) float64 keypoint positions (COLMAP pixel convention) and
         (N, 128) float32 descriptors.
@@ -82,8 +86,9 @@ def extract_sift(gray: np.ndarray, max_features: int = 8192, max_size: int = 0) 
     opts = pycolmap.FeatureExtractionOptions()
     opts.sift.max_num_features = int(max_features)
     # COLMAP starts at octave -1 (the image upsampled 2x) for the finest
-    # features; a relative pose does not need them, and it quarters the cost.
-    opts.sift.first_octave = 0
+    # features: on a small photo they are the matches a pose needs; a large one
+    # has plenty at octave 0, where the cost is a quarter.
+    opts.sift.first_octave = -1 if max(gray.shape[:2]) <= upsample_max_size else 0
     opts.use_gpu = False
     extractor = pycolmap.FeatureExtractor.create(opts, device=pycolmap.Device.cpu)
     keypoints, descriptors = extractor.extract_from_uint8_array(np.ascontiguousarray(gray))
@@ -117,14 +122,15 @@ def match_descriptors(desc1: np.ndarray, desc2: np.ndarray, max_ratio: float = 0
 
 
 def sift_correspondences(gray1, gray2, max_features: int = 8192, max_ratio: float = 0.8, min_features: int = 0,
-                         names: tuple[str, str] = ("image 1", "image 2"), max_size: int = 0):
+                         names: tuple[str, str] = ("image 1", "image 2"), max_size: int = 0,
+                         upsample_max_size: int = 0):
     """Putative SIFT correspondences ``(xy1 (M, 2), xy2 (M, 2))`` between two images.
 
     Raises :class:`InputError` when an image has fewer than ``min_features``
     SIFT features (a textureless image: nothing to estimate geometry from).
     """
-    xy1, d1 = extract_sift(gray1, max_features, max_size)
-    xy2, d2 = extract_sift(gray2, max_features, max_size)
+    xy1, d1 = extract_sift(gray1, max_features, max_size, upsample_max_size)
+    xy2, d2 = extract_sift(gray2, max_features, max_size, upsample_max_size)
     for xy, name in ((xy1, names[0]), (xy2, names[1])):
         if len(xy) < min_features:
             raise InputError(
