@@ -126,8 +126,9 @@ class GeometryConfig:
         why="a distance; SIFT positions are good to a pixel or two, and at 50 px (5 % of a 1000 px photo) "
             "wrong matches count as inliers")
     min_tri_angle_deg: float = _setting(
-        0.5, "a pair whose SIFT inliers' median triangulation angle is below this has no baseline: refused "
-             "(sefm-recon pair) or skipped (sefm-recon colmap)", unit="degrees", range=Range(0, 90),
+        0.5, "a pair whose SIFT inliers' median triangulation angle is below this has a narrow baseline: a "
+             "warning that its depth will be noisy (sefm-recon pair; only a pure rotation is refused) or skipped "
+             "(sefm-recon colmap)", unit="degrees", range=Range(0, 90),
         why="an angle between two rays; cameras that see one surface from both sides of 90 degrees face each "
             "other and see different sides of it")
     depth_margin: float = 2.0  #: search depths from p1/margin to p99*margin of the SIFT points' depths
