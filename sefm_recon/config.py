@@ -132,6 +132,9 @@ class GeometryConfig:
         why="an angle between two rays; cameras that see one surface from both sides of 90 degrees face each "
             "other and see different sides of it")
     depth_margin: float = 2.0  #: search depths from p1/margin to p99*margin of the SIFT points' depths
+    #: an estimated pose is checked with free 2-D tracks of the dense matches, refined from them and the
+    #: pair matched again where that moves the lines (false: the SIFT pose as it is, for the measurement)
+    refine_pose: bool = True
 
 
 @dataclass
