@@ -89,19 +89,26 @@ class SiftConfig:
     """SIFT features for the two-view pose (``sefm-recon pair``)."""
 
     max_features: int = _setting(
-        4096, "SIFT features kept per image (the strongest)", unit="features", range=Range(5, 100_000),
+        8192, "SIFT features kept per image (the strongest); 8192 is COLMAP's default", unit="features",
+        range=Range(5, 100_000),
         why="the five-point pose needs 5 matches (and at least geometry.min_inliers are needed); beyond 100 000, "
-            "25 times the default, SIFT and its matching only get slower: a pose needs tens of well spread inliers")
+            "12 times the default, SIFT and its matching only get slower: a pose needs tens of well spread inliers")
     max_ratio: float = _setting(
         0.8, "Lowe's ratio test: a match's descriptor distance over the second-best one's must be below this",
         range=Range(0, 1, low_open=True),
         why="a ratio of two distances, the best one first: at 1 every mutual nearest neighbour passes, at 0 none")
     max_image_size: int = _setting(
-        1024, "SIFT runs on copies downscaled to this longest side (photos longer than 2:1: to this "
-              "size squared over 2 pixels)", unit="px",
+        3200, "SIFT runs on copies downscaled to this longest side (photos longer than 2:1: to this "
+              "size squared over 2 pixels); 3200 is COLMAP's default", unit="px",
         range=Range(64, MAX_SIDE, special=(0, "full size")),
         why="images under 64 px on a side are refused as too small to match; above 100 000 px (beyond any "
             "camera's sensor) the value would mean full size, like 0")
+    #: SIFT starts at octave -1 (the photo upsampled 2x, as COLMAP always does) when the photo
+    #: SIFT sees has a longest side of at most this (px): small photos gain their finest
+    #: features, large ones have enough and would pay 4 times the pixels. At 1600 the
+    #: upsampled copy is at most 3200 px, COLMAP's own largest SIFT image (0 = never).
+    #: Internal: the user settings are capped at 25.
+    upsample_max_size: int = 1600
 
 
 @dataclass
@@ -115,14 +122,19 @@ class GeometryConfig:
     ransac_max_error: float = _setting(
         2.0, "RANSAC inlier threshold: largest distance of a SIFT match from its epipolar line", unit="px",
         range=Range(0, 50, low_open=True),
-        why="a distance; SIFT positions are good to a pixel or two, and at 50 px (5 % of a 1024 px SIFT image) "
+        why="a distance; SIFT positions are good to a pixel or two, and at 50 px (5 % of a 1000 px photo) "
             "wrong matches count as inliers")
     min_tri_angle_deg: float = _setting(
-        0.5, "a pair whose SIFT inliers' median triangulation angle is below this has no baseline: refused "
-             "(sefm-recon pair) or skipped (sefm-recon colmap; pairs from the poses: its rays' angle at the scene)", unit="degrees", range=Range(0, 90),
+        0.5, "a pair whose SIFT inliers' median triangulation angle is below this has a narrow baseline: a "
+             "warning that its depth will be noisy (sefm-recon pair; only a pure rotation is refused) or skipped "
+             "(sefm-recon colmap; pairs from the poses: its rays' angle at the scene)", unit="degrees",
+        range=Range(0, 90),
         why="an angle between two rays; cameras that see one surface from both sides of 90 degrees face each "
             "other and see different sides of it")
     depth_margin: float = 2.0  #: search depths from p1/margin to p99*margin of the SIFT points' depths
+    #: an estimated pose is checked with free 2-D tracks of the dense matches, refined from them and the
+    #: pair matched again where that moves the lines (false: the SIFT pose as it is, for the measurement)
+    refine_pose: bool = True
 
 
 @dataclass
@@ -446,6 +458,7 @@ _INTERNAL_RANGES: dict[str, Range] = {key: Range(low, high, low_open) for key, (
     "validity.max_cost": (0, None, False),
     "validity.min_tri_angle_deg": (0, 90, False),
     "sgm.uniqueness": (0, 100, False),
+    "sift.upsample_max_size": (0, MAX_SIDE, False),
     "sgm.range_margin": (0, 4, False),
 }.items()}
 

@@ -45,6 +45,9 @@ def test_pair_writes_every_output(demo_out):
     assert counts["valid_matches"] >= 50_000
     assert counts["points"] <= counts["valid_matches"] <= counts["dense_matches"]
     assert report["image_size"] == [[640, 480], [640, 480]]
+    f = float((SAMPLE / "camera.txt").read_text().split()[4])  # PINHOLE W H fx fy cx cy
+    assert [c["source"] for c in report["focal_length"]] == ["given", "given"]
+    assert report["focal_length"][0]["px"] == pytest.approx(f, abs=1.0)
     m = np.load(demo_out / "matches.npz")
     assert m["uv1"].shape == m["uv2"].shape == (counts["points"], 2)  # one match per point of points.ply
     assert len(m["score"]) == len(m["uv1"])

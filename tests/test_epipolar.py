@@ -1,5 +1,6 @@
 """Epipoles and epipolar line pairs on configurations with known answers."""
 
+import cv2
 import numpy as np
 import pytest
 
@@ -121,3 +122,17 @@ def test_working_view_maps_back_to_the_original_pixels(model, params):
     np.testing.assert_allclose(orig, cam.img_from_cam(rays), atol=1e-9)
     if model == "PINHOLE":  # pixel edges scale exactly: the image corner maps to the corner
         np.testing.assert_allclose(view.to_original(np.array([[400.0, 300.0]])), [[800.0, 600.0]], atol=1e-9)
+
+
+def test_sift_upsamples_small_photos_only():
+    """COLMAP's octave -1 on a small photo finds the fine features octave 0 misses; large ones are not upsampled."""
+    from sefm_recon.geometry.two_view import extract_sift
+    from sefm_recon.synthetic import render_scene
+
+    img = render_scene(seed=5, width=320, height=240, style="classic").views[0].image
+    gray = cv2.cvtColor(img, cv2.COLOR_RGB2GRAY)
+    at0, _ = extract_sift(gray, 8192, 0, upsample_max_size=0)
+    up, _ = extract_sift(gray, 8192, 0, upsample_max_size=320)
+    assert len(up) > 1.5 * len(at0), (len(up), len(at0))
+    same, _ = extract_sift(gray, 8192, 0, upsample_max_size=319)  # longer than the limit: octave 0
+    assert len(same) == len(at0)

@@ -66,7 +66,7 @@ def test_the_first_run_says_it_compiles_and_the_default_output_has_no_jargon(tmp
     assert lines[0].startswith("first run: compiling the numerical kernels once (a few seconds)"), lines
     assert sum("compiling" in line for line in lines) == 1
     assert not any("epipole" in line or "Poisson" in line or "line images" in line for line in lines), lines
-    assert any(line.startswith("camera 1 (given)") for line in lines)
+    assert any(line.startswith("camera 1: focal length 667.0 px given with --camera") for line in lines), lines
     assert "matches" in first.stdout and str(tmp_path / "out") in first.stdout
     again = _pair(tmp_path / "out", tmp_path / "cache", "-v")  # warm now; -v shows the diagnostics
     assert again.returncode == 0, again.stderr

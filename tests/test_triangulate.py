@@ -1,4 +1,6 @@
+import cv2
 import numpy as np
+import pytest
 
 from sefm_recon.geometry.triangulate import project, reprojection_errors, triangulate
 
@@ -26,3 +28,37 @@ def test_points_behind_a_camera_are_invalid():
     uv2 = np.array([[420.0, 240.0]])  # rays diverge: intersection behind the cameras
     _, valid, _ = triangulate(K, K, R, t, uv1, uv2)
     assert not valid[0]
+
+
+def _two_view_points(t, seed=0, n=400):
+    """Exact correspondences of points 1-20 m ahead, in view, seen by K = f 500 at 640x480 from the origin and
+    from ``t`` after a 3 deg turn."""
+    rng = np.random.default_rng(seed)
+    K = np.array([[500.0, 0, 320], [0, 500, 240], [0, 0, 1]])
+    X = np.c_[rng.uniform(-1, 1, (n, 2)), rng.uniform(1, 20, n)]
+    X[:, :2] *= 0.5 * X[:, 2:]
+    R = cv2.Rodrigues(np.radians([0.0, 3.0, 0.0]))[0]
+
+    def proj(P):
+        p = P @ K.T
+        return p[:, :2] / p[:, 2:]
+
+    return K, proj(X), proj(X @ R.T + np.asarray(t, float))
+
+
+def test_a_narrow_baseline_is_a_warning_a_pure_rotation_is_refused(caplog):
+    """Median triangulation angle 0.38 deg (below the comfortable 0.5): noisy depth, not wrong; t = 0: no depth."""
+    from sefm_recon.errors import InputError
+    from sefm_recon.geometry.two_view import estimate_two_view, rotation_parallax, triangulation_angles
+
+    K, a, b = _two_view_points([0.08, 0.0, 0.0])
+    with caplog.at_level("WARNING"):
+        tv = estimate_two_view(a, b, K, K, (640, 480), (640, 480), min_tri_angle_deg=0.5)
+    angle = np.degrees(np.median(triangulation_angles(tv)))
+    assert 0.3 < angle < 0.5 and rotation_parallax(tv)[1] > 3.0
+    assert "narrow baseline" in caplog.text and "depth will be noisy" in caplog.text
+    assert np.degrees(np.arccos(np.clip(tv.t @ [1, 0, 0], -1, 1))) < 1.0  # the right direction
+    K, a, b = _two_view_points([0.0, 0.0, 0.0])
+    b = b + np.random.default_rng(1).normal(0, 0.3, b.shape)  # SIFT's localisation noise
+    with pytest.raises(InputError, match=r"no baseline.*pure rotation of the camera \(by 3\.0 deg\)"):
+        estimate_two_view(a, b, K, K, (640, 480), (640, 480))

@@ -61,11 +61,15 @@ def sift_scale(w: int, h: int, max_size: int) -> float:
     return min(1.0, max(max_size / max(w, h), float(np.sqrt(max_size * max_size / 2.0 / (w * h)))))
 
 
-def extract_sift(gray: np.ndarray, max_features: int = 8192, max_size: int = 0) -> tuple[np.ndarray, np.ndarray]:
+def extract_sift(gray: np.ndarray, max_features: int = 8192, max_size: int = 0,
+                 upsample_max_size: int = 0) -> tuple[np.ndarray, np.ndarray]:
     """SIFT keypoints and descriptors with pycolmap (COLMAP's CPU SIFT).
 
     Args:
         gray: (H, W) uint8 image.
+        max_size: longest side SIFT works at (:func:`sift_scale`; 0 = full size).
+        upsample_max_size: start at octave -1 (COLMAP's default) when the image
+            SIFT works on is no longer than this; else at octave 0.
     Returns:
         xy (N, 2) float64 keypoint positions (COLMAP pixel convention) and
         (N, 128) float32 descriptors.
@@ -82,8 +86,9 @@ def extract_sift(gray: np.ndarray, max_features: int = 8192, max_size: int = 0) 
     opts = pycolmap.FeatureExtractionOptions()
     opts.sift.max_num_features = int(max_features)
     # COLMAP starts at octave -1 (the image upsampled 2x) for the finest
-    # features; a relative pose does not need them, and it quarters the cost.
-    opts.sift.first_octave = 0
+    # features: on a small photo they are the matches a pose needs; a large one
+    # has plenty at octave 0, where the cost is a quarter.
+    opts.sift.first_octave = -1 if max(gray.shape[:2]) <= upsample_max_size else 0
     opts.use_gpu = False
     extractor = pycolmap.FeatureExtractor.create(opts, device=pycolmap.Device.cpu)
     keypoints, descriptors = extractor.extract_from_uint8_array(np.ascontiguousarray(gray))
@@ -117,14 +122,15 @@ def match_descriptors(desc1: np.ndarray, desc2: np.ndarray, max_ratio: float = 0
 
 
 def sift_correspondences(gray1, gray2, max_features: int = 8192, max_ratio: float = 0.8, min_features: int = 0,
-                         names: tuple[str, str] = ("image 1", "image 2"), max_size: int = 0):
+                         names: tuple[str, str] = ("image 1", "image 2"), max_size: int = 0,
+                         upsample_max_size: int = 0):
     """Putative SIFT correspondences ``(xy1 (M, 2), xy2 (M, 2))`` between two images.
 
     Raises :class:`InputError` when an image has fewer than ``min_features``
     SIFT features (a textureless image: nothing to estimate geometry from).
     """
-    xy1, d1 = extract_sift(gray1, max_features, max_size)
-    xy2, d2 = extract_sift(gray2, max_features, max_size)
+    xy1, d1 = extract_sift(gray1, max_features, max_size, upsample_max_size)
+    xy2, d2 = extract_sift(gray2, max_features, max_size, upsample_max_size)
     for xy, name in ((xy1, names[0]), (xy2, names[1])):
         if len(xy) < min_features:
             raise InputError(
@@ -158,7 +164,9 @@ def estimate_two_view(
             and the homography's own test (:func:`rotation_homography`) is used.
     Raises:
         InputError: too few inliers (unrelated images or too little overlap), or
-            no baseline (the same photo twice, or a pure rotation).
+            no baseline (the same photo twice, or a pure rotation: :func:`rotation_parallax`).
+            A narrow baseline (median triangulation angle below ``min_tri_angle_deg``)
+            is only a warning: its depth is noisy, not wrong.
     """
     from ..io.cameras import pinhole_camera
 
@@ -221,14 +229,48 @@ def estimate_two_view(
     t = np.asarray(pose.translation, dtype=np.float64).reshape(3)
     t = t / max(np.linalg.norm(t), 1e-12)
     tv = TwoView(K1, K2, R, t, xy1[inliers[:, 0]], xy2[inliers[:, 1]], len(xy1))
-    angle = np.degrees(np.median(triangulation_angles(tv)))
-    if not np.isfinite(angle) or angle < min_tri_angle_deg:
+    angle = float(np.degrees(np.median(triangulation_angles(tv))))
+    turn, parallax = rotation_parallax(tv)
+    if not np.isfinite(parallax) or parallax < ROTATION_PARALLAX_PX:
         raise InputError(
-            f"no baseline between the images: median triangulation angle {angle:.2f} deg, at least "
-            f"{min_tri_angle_deg:g} deg is needed; the camera only turned (a pure rotation) or did not move, so no "
-            "depth can be recovered (take the second photo from a different position)"
+            f"no baseline between the images: a pure rotation of the camera (by {turn:.1f} deg) explains the SIFT "
+            f"inliers to a median {parallax:.2f} px (median triangulation angle {angle:.2f} deg), so the camera "
+            "only turned or did not move and no depth can be recovered (take the second photo from a different "
+            "position)"
         )
+    if angle < min_tri_angle_deg:
+        logger.warning(
+            "narrow baseline: median triangulation angle %.2f deg, below the comfortable %g deg "
+            "(geometry.min_tri_angle_deg); the depth will be noisy (%.1f px of parallax beyond a pure rotation)",
+            angle, min_tri_angle_deg, parallax)
     return tv
+
+
+#: A pose is refused as a pure rotation when the best rotation alone moves the SIFT
+#: inliers to within this median distance (px) of their matches: SIFT keypoints are
+#: located to about half a pixel, so a pure rotation leaves about that, while a pair
+#: with depth from its baseline (tsukuba, 384x288, 5-15 px disparities) leaves more.
+ROTATION_PARALLAX_PX = 1.0
+
+
+def rotation_parallax(tv: TwoView) -> tuple[float, float]:
+    """The rotation (deg) that best maps image 1's inlier rays onto image 2's, and the
+    median distance (px, at image 2's focal length) it leaves: the parallax a
+    translation has to explain. Wahba's problem (SVD), independent of ``tv.R``: a
+    pure rotation's essential matrix leaves the translation undetermined.
+    """
+    if len(tv.kp1) < 3:
+        return 0.0, float("nan")
+    r1 = np.c_[tv.kp1, np.ones(len(tv.kp1))] @ np.linalg.inv(tv.K1).T
+    r2 = np.c_[tv.kp2, np.ones(len(tv.kp2))] @ np.linalg.inv(tv.K2).T
+    r1 /= np.linalg.norm(r1, axis=1, keepdims=True)
+    r2 /= np.linalg.norm(r2, axis=1, keepdims=True)
+    U, _, Vt = np.linalg.svd(r2.T @ r1)
+    Rw = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
+    p = (r1 @ Rw.T) @ tv.K2.T
+    d = np.linalg.norm(p[:, :2] / p[:, 2:3] - tv.kp2, axis=1)
+    turn = float(np.degrees(np.arccos(np.clip((np.trace(Rw) - 1) / 2, -1, 1))))
+    return turn, float(np.median(d))
 
 
 #: A homography whose eigenvalues differ in magnitude by less than this share is
