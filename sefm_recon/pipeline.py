@@ -219,7 +219,7 @@ def _check_and_refine_pose(v1: WorkingView, v2: WorkingView, tv, dm: DenseMatche
     notes = {"pose_check": {"tracks": len(tracks.uv1), "tracked_of": tracks.tried,
                             "sift_pose_epipolar_px": round(before, 3),
                             "refined_pose_epipolar_px": None if np.isnan(after) else round(after, 3)}}
-    logger.info("pose check: %d of %d dense matches tracked in 2-D; median %.2f px from the SIFT pose's lines, "
+    logger.debug("pose check: %d of %d dense matches tracked in 2-D; median %.2f px from the SIFT pose's lines, "
                 "%.2f px from the refined pose's", len(tracks.uv1), tracks.tried, before, after)
     if new is not None and before > REMATCH_PX and after < REMATCH_GAIN * before:
         rot, tr = pose_change_deg(tv, new)
