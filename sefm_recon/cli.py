@@ -208,12 +208,13 @@ def _cmd_eval(args) -> int:
         logging.getLogger("sefm_recon.eval_tables").setLevel(logging.ERROR if args.quiet else logging.INFO)
     if args.ablation and args.real is not None:
         from .io.real_gt import DEFAULT_REAL_GT
+        from .realgt import VARIANTS
 
         et.warm_up()
         root = args.real or DEFAULT_REAL_GT
-        rows = et.ablation_table(et.real_cases(root, args.variants), args.pose, args.overrides)
+        rows = et.ablation_table(et.real_cases(root, args.variants, args.pairs), args.pose, args.overrides)
         main, extra = "ablation-real", {}
-        text = (f"SeFM ablation, mean over the real pairs in {', '.join(args.variants or ('rect', 'unrect', 'conv'))} "
+        text = (f"SeFM ablation, mean over the real pairs in {', '.join(args.variants or VARIANTS)} "
                 f"({args.pose} pose), with the peers on the same pairs:\n\n" + et.format_ablation_table(rows))
     elif args.ablation:
         w, h = _size(args.size)

@@ -223,11 +223,9 @@ def run_case(case, methods: Iterable[str] = METHODS, overrides: Iterable[str] = 
     return rows
 
 
-def real_table(root, variants=None, pairs=None, methods: Iterable[str] = METHODS,
-               overrides: Iterable[str] = ()) -> list[dict]:
-    """Rows of :func:`run_case` for every real pair under ``root`` in every variant."""
-    from .io.real_gt import list_pairs, load_pair
-    from .realgt import VARIANTS, make_case
+def _real_folders(root, pairs=None) -> list:
+    """The real pair folders under ``root`` (only those named in ``pairs``, all of them present)."""
+    from .io.real_gt import list_pairs
 
     folders = list_pairs(root)
     if pairs:
@@ -236,24 +234,34 @@ def real_table(root, variants=None, pairs=None, methods: Iterable[str] = METHODS
         missing = wanted - {f.name for f in folders}
         if missing:
             raise InputError(f"no such pair in {root}: {', '.join(sorted(missing))}")
+    return folders
+
+
+def _pair_cases(folder, variants=None):
+    """The cases of one real pair folder, one per variant."""
+    from .io.real_gt import load_pair
+    from .realgt import VARIANTS, make_case
+
+    pair = load_pair(folder)
+    return [make_case(pair, variant) for variant in variants or VARIANTS]
+
+
+def real_table(root, variants=None, pairs=None, methods: Iterable[str] = METHODS,
+               overrides: Iterable[str] = ()) -> list[dict]:
+    """Rows of :func:`run_case` for every real pair under ``root`` in every variant."""
+    folders = _real_folders(root, pairs)
     rows = []
     for k, folder in enumerate(folders, 1):
-        pair = load_pair(folder)
-        for variant in variants or VARIANTS:
-            rows += run_case(make_case(pair, variant), methods, overrides)
-        logger.info("[%d/%d] %s done", k, len(folders), pair.name)
+        for case in _pair_cases(folder, variants):
+            rows += run_case(case, methods, overrides)
+        logger.info("[%d/%d] %s done", k, len(folders), folder.name)
     return rows
 
 
-def real_cases(root, variants=None):
+def real_cases(root, variants=None, pairs=None):
     """Every real pair under ``root`` in every variant, as cases (read one pair at a time)."""
-    from .io.real_gt import list_pairs, load_pair
-    from .realgt import VARIANTS, make_case
-
-    for folder in list_pairs(root):
-        pair = load_pair(folder)
-        for variant in variants or VARIANTS:
-            yield make_case(pair, variant)
+    for folder in _real_folders(root, pairs):
+        yield from _pair_cases(folder, variants)
 
 
 def generated_table(seeds, size=(1000, 750), methods: Iterable[str] = METHODS, overrides: Iterable[str] = (),

@@ -226,7 +226,7 @@ def _check_and_refine_pose(v1: WorkingView, v2: WorkingView, tv, dm: DenseMatche
         logger.info("pose refined with the dense matches (%.2f deg rotation, %.2f deg translation direction): "
                     "matching again", rot, tr)
         notes["pose_check"]["refined_change_deg"] = [round(rot, 3), round(tr, 3)]
-        tv, before = new, after
+        tv = new
         dm = _match(v1, v2, tv, cfg, progress)
     return tv, dm, notes
 

@@ -122,24 +122,31 @@ def project(K: np.ndarray, Rc: np.ndarray, r: np.ndarray):
         return p[..., 0] / z, p[..., 1] / z, z > 1e-9
 
 
+@njit(cache=True)
+def project_polar(P, basis, cos_phi, sin_phi, alpha):
+    """Pixel ``(u, v, z)`` of the camera-1-axes ray ``(phi, alpha)`` projected by ``P`` (3, 3),
+    ``u, v`` COLMAP positions, valid where ``z > 0`` (in front of the camera)."""
+    ca, sa = np.cos(alpha), np.sin(alpha)
+    x0 = ca * basis[0, 0] + sa * (cos_phi * basis[1, 0] + sin_phi * basis[2, 0])
+    x1 = ca * basis[0, 1] + sa * (cos_phi * basis[1, 1] + sin_phi * basis[2, 1])
+    x2 = ca * basis[0, 2] + sa * (cos_phi * basis[1, 2] + sin_phi * basis[2, 2])
+    z = P[2, 0] * x0 + P[2, 1] * x1 + P[2, 2] * x2
+    if z <= 1e-9:
+        return 0.0, 0.0, z
+    return (P[0, 0] * x0 + P[0, 1] * x1 + P[0, 2] * x2) / z, (P[1, 0] * x0 + P[1, 1] * x1 + P[1, 2] * x2) / z, z
+
+
 @njit(parallel=True, cache=True)
 def _remap_maps(P, basis, phi, alpha, mx, my):
     """cv2.remap's maps (float32, pixel centres at integers) of the rays ``(phi[r], alpha[c])``
     projected by ``P`` (3, 3, camera-1 axes to pixels); rays behind the camera map far outside."""
     for r in prange(phi.shape[0]):
         cp, sp = np.cos(phi[r]), np.sin(phi[r])
-        m0 = cp * basis[1, 0] + sp * basis[2, 0]
-        m1 = cp * basis[1, 1] + sp * basis[2, 1]
-        m2 = cp * basis[1, 2] + sp * basis[2, 2]
         for c in range(alpha.shape[0]):
-            ca, sa = np.cos(alpha[c]), np.sin(alpha[c])
-            x0 = ca * basis[0, 0] + sa * m0
-            x1 = ca * basis[0, 1] + sa * m1
-            x2 = ca * basis[0, 2] + sa * m2
-            z = P[2, 0] * x0 + P[2, 1] * x1 + P[2, 2] * x2
+            u, v, z = project_polar(P, basis, cp, sp, alpha[c])
             if z > 1e-9:
-                mx[r, c] = (P[0, 0] * x0 + P[0, 1] * x1 + P[0, 2] * x2) / z - 0.5
-                my[r, c] = (P[1, 0] * x0 + P[1, 1] * x1 + P[1, 2] * x2) / z - 0.5
+                mx[r, c] = u - 0.5
+                my[r, c] = v - 0.5
             else:
                 mx[r, c] = -1e4
                 my[r, c] = -1e4

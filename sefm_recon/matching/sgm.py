@@ -29,7 +29,7 @@ from ..geometry.epipolar import ray_angles
 from ..geometry.kernels import pixel_ray
 from ..geometry.triangulate import triangulate
 from ..geometry.two_view import TwoView
-from .lines import LineGrid, line_grid, line_images, pixel_grid
+from .lines import LineGrid, line_grid, line_images, pixel_grid, project_polar
 from .sefm import DenseMatches, depth_range
 
 logger = logging.getLogger(__name__)
@@ -93,23 +93,25 @@ def search_range(tv: TwoView, grid: LineGrid, size1: tuple[int, int], margin: fl
     """(lo, hi) columns of parallax to search: the SIFT inliers' own column differences
     (1st-99th percentile), widened on each side by ``margin`` of their span and at least
     :data:`MARGIN_COLUMNS`. With fewer than 8 inliers, all scene points from a fifth of
-    the baseline to infinity.
+    the baseline to infinity. Every range is then widened by :data:`MARGIN_COLUMNS` more
+    for OpenCV's poor estimates at the ends of its range.
 
     A margin in parallax rather than in depth (``sift_parallax=False``: the parallax of
     the SIFT points' depths, halved and doubled): the depth margin widens the search 2-4
     fold on the generated scenes.
     """
     if len(tv.kp1) < 8:
-        return parallax_columns(tv, grid, size1, (0.2 * float(np.linalg.norm(tv.t)), float("inf")))
-    if not sift_parallax:
-        dmin, dmax = depth_range(tv, 2.0)
-        return parallax_columns(tv, grid, size1, (dmin, dmax))
-    _, a1 = ray_angles(tv.K1, np.eye(3), grid.basis, tv.kp1)
-    _, a2 = ray_angles(tv.K2, tv.R.T, grid.basis, tv.kp2)
-    d = grid.column(a1) - grid.column(a2)
-    lo, hi = np.percentile(d, [1, 99])
-    m = max(MARGIN_COLUMNS, margin * (hi - lo))
-    return float(lo - m), float(hi + m)
+        lo, hi = parallax_columns(tv, grid, size1, (0.2 * float(np.linalg.norm(tv.t)), float("inf")))
+    elif not sift_parallax:
+        lo, hi = parallax_columns(tv, grid, size1, depth_range(tv, 2.0))
+    else:
+        _, a1 = ray_angles(tv.K1, np.eye(3), grid.basis, tv.kp1)
+        _, a2 = ray_angles(tv.K2, tv.R.T, grid.basis, tv.kp2)
+        d = grid.column(a1) - grid.column(a2)
+        lo, hi = np.percentile(d, [1, 99])
+        m = max(MARGIN_COLUMNS, margin * (hi - lo))
+        lo, hi = lo - m, hi + m
+    return float(lo - MARGIN_COLUMNS), float(hi + MARGIN_COLUMNS)
 
 
 class GridScalars(NamedTuple):
@@ -195,16 +197,9 @@ def _read_back(disp, row_of, g, basis, K1inv, P2, w1, y0, w2, h2, uv2, row):
                 den += w
         d = num / den if den > 0.0 and g.interpolate else dn
         a2 = 2.0 * np.arctan(np.exp(g.u_max - (c - d - g.pad) * g.u_step))
-        cp, sp = np.cos(phi), np.sin(phi)
-        ca, sa = np.cos(a2), np.sin(a2)
-        x0 = ca * basis[0, 0] + sa * (cp * basis[1, 0] + sp * basis[2, 0])
-        x1 = ca * basis[0, 1] + sa * (cp * basis[1, 1] + sp * basis[2, 1])
-        x2 = ca * basis[0, 2] + sa * (cp * basis[1, 2] + sp * basis[2, 2])
-        z = P2[2, 0] * x0 + P2[2, 1] * x1 + P2[2, 2] * x2
+        u, v, z = project_polar(P2, basis, np.cos(phi), np.sin(phi), a2)
         if z <= 1e-9:
             continue
-        u = (P2[0, 0] * x0 + P2[0, 1] * x1 + P2[0, 2] * x2) / z
-        v = (P2[1, 0] * x0 + P2[1, 1] * x1 + P2[1, 2] * x2) / z
         if u < 0.0 or u >= w2 or v < 0.0 or v >= h2:
             continue
         uv2[i, 0] = u
@@ -271,8 +266,8 @@ def match_pair_sgm(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config,
         raise InputError("no epipolar line crosses both images: with this geometry the views do not overlap")
     opt = cfg.sgm
     lo, hi = search_range(tv, grid, size1, opt.range_margin, opt.sift_range)
-    min_d = int(math.floor(lo - MARGIN_COLUMNS))
-    num_d = int(math.ceil((hi - lo + 2 * MARGIN_COLUMNS + 1) / 16.0)) * 16  # OpenCV: a multiple of 16
+    min_d = int(math.floor(lo))
+    num_d = int(math.ceil((hi - lo + 1) / 16.0)) * 16  # OpenCV: a multiple of 16
     # Image 2's line image is shifted by min_d, so that OpenCV searches 0..num_d; the pad
     # left of image 1's columns holds the search window of its first columns.
     grid.pad = num_d + 1
