@@ -48,7 +48,7 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
-__all__ = ["PairMatches", "Quantised", "add_legacy_columns", "quantise_matches", "two_view_geometry",
+__all__ = ["PairMatches", "Quantised", "StoredPairMatches", "add_legacy_columns", "quantise_matches", "two_view_geometry",
            "write_database"]
 
 #: Columns of the ``images`` table up to COLMAP 3.8 that pycolmap 4 (COLMAP >= 3.10 keeps pose priors
@@ -68,6 +68,21 @@ class PairMatches:
     uv1: np.ndarray  #: (N, 2)
     uv2: np.ndarray  #: (N, 2)
     score: np.ndarray  #: (N,)
+
+
+class StoredPairMatches:
+    """A pair's dense matches read from its ``matches.npz`` when asked for (one pair in memory at a time)."""
+
+    def __init__(self, image_id1: int, image_id2: int, path: str | os.PathLike):
+        self.image_id1, self.image_id2, self.path = image_id1, image_id2, Path(path)
+
+    def _get(self, key: str) -> np.ndarray:
+        with np.load(self.path) as f:
+            return f[key]
+
+    uv1 = property(lambda self: self._get("uv1"))
+    uv2 = property(lambda self: self._get("uv2"))
+    score = property(lambda self: self._get("score"))
 
 
 @dataclass
