@@ -611,7 +611,7 @@ def _collect(r: dict, states: list[_PairState], staged, results: dict[int, dict]
 
 
 def triangulate(rec, database: Path, image_dir: Path, out_dir: Path, cfg: Config):
-    """``pycolmap.triangulate_points`` with the given poses; two-view tracks are kept."""
+    """``pycolmap.triangulate_points`` with the given poses, without bundle adjustment; two-view tracks are kept."""
     import pycolmap
 
     opts = pycolmap.IncrementalPipelineOptions()
@@ -619,6 +619,9 @@ def triangulate(rec, database: Path, image_dir: Path, out_dir: Path, cfg: Config
     opts.triangulation.min_angle = float(cfg.colmap.tri_min_angle_deg)
     opts.mapper.filter_min_tri_angle = float(cfg.colmap.tri_min_angle_deg)
     opts.extract_colors = True
+    # the poses and cameras are given and stay fixed, so COLMAP's bundle adjustment would only move the points:
+    # on 8 photos of 1.5 MP it took 1.4 GB and 40 s to bring their mean reprojection error from 0.55 to 0.25 px
+    opts.ba_global_max_refinements = 0
     out_dir.mkdir(parents=True, exist_ok=True)
     model = pycolmap.Reconstruction(rec)  # a copy: the caller's model keeps its points
     return pycolmap.triangulate_points(model, str(database), str(image_dir), str(out_dir), clear_points=True,
@@ -641,6 +644,7 @@ def run_colmap(
     from .io.colmap_database import StoredPairMatches, quantise_matches, write_database
     from .io.colmap_model import check_model_written, write_poses_model
     from .io.output import StagedOutput, check_output_dir
+    from .memory import release_freed_memory
     from .io.ply import iter_point_cloud, write_point_cloud
     from .reconstruct.fuse import BLOCK_POINTS as FUSE_BLOCK
     from .reconstruct.fuse import FusionView, fuse_pairs
@@ -712,6 +716,8 @@ def run_colmap(
             with contextlib.closing(iter_pair_results(tasks, workers, scheduler)) as pair_results:
                 for r in pair_results:
                     _collect(r, states, staged, results)
+                    del r
+                    release_freed_memory()  # the CLI keeps freed memory for speed; between stages it goes back
                     if bar is not None:
                         bar.update(1)
         finally:
@@ -736,6 +742,7 @@ def run_colmap(
         staged.require(27 * len(fused.xyz))
         write_point_cloud(stage / "fused.ply", fused.xyz, fused.rgb, fused.normals)
         del fused.xyz, fused.rgb, fused.normals, fused.tracks
+        release_freed_memory()
         timings["fuse"] = time.perf_counter() - t0
 
         # database
@@ -747,6 +754,9 @@ def run_colmap(
         # match; sparse_poses/: every keypoint again
         staged.require(12 * n_kp + 20 * n_m + (256 << 10) + 24 * n_kp + 67 * n_m + 24 * n_kp)
         db_counts = write_database(stage / "database.db", rec, q, cfg.colmap.max_epipolar_error)
+        del pm
+        q.matches.clear()
+        release_freed_memory()
         timings["database"] = time.perf_counter() - t0
 
         # triangulation with the given poses

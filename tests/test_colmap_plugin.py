@@ -153,6 +153,11 @@ def test_done_when_figures(text_run, scene3):
     report = json.loads((out / "report.json").read_text())
     assert report["sparse"]["points"] == rec.num_points3D()
     assert report["counts"]["fused_points"] == len(xyz)
+    # multi-view fusion: every fused point has a track of at least its own pair's two views, most have three
+    fusion = report["fusion"]
+    assert sum(fusion["track_lengths"]) == len(xyz) and sum(fusion["track_lengths"][:2]) < 0.01 * len(xyz)
+    assert sum(fusion["track_lengths"][3:]) > 0.5 * len(xyz)
+    assert fusion["kept"] + fusion["dropped_free_space"] + fusion["dropped_background"] == fusion["input_points"]
 
 
 @pytest.mark.slow
