@@ -336,16 +336,19 @@ class ColmapConfig:
     tri_min_angle_deg: float = _setting(
         1.5, "COLMAP's triangulator: smallest triangulation angle of a point in sparse/", unit="degrees",
         range=Range(0, 90), why="as geometry.min_tri_angle_deg")
-    fuse_voxel_px: float = _setting(
-        1.0, "fused.ply keeps one point per voxel whose size is the footprint of this many pixels at the "
-             "median depth", unit="px", range=Range(0.1, 100),
-        why="below a tenth of a pixel no two points share a voxel and fusion merges nothing; at 100 px one "
-            "point stands for 10 000 pixels of each photo")
-    fuse_std_ratio: float = _setting(
-        2.5, "statistical outlier removal of fused.ply: a point whose mean distance to its neighbours is this "
-             "many standard deviations above the average is dropped", unit="standard deviations",
-        range=Range(0, 10, low_open=True),
-        why="a number of standard deviations; beyond 10 a cloud of real surfaces has nothing left to drop")
+    fuse_min_views: int = _setting(
+        3, "fused.ply: views (the pair's two included) that must agree with a point for it to be kept although "
+           "a minority of views contradict it; a point with fewer is kept only where no view contradicts it",
+        unit="views", range=Range(2, 1000),
+        why="a pair's own two views confirm nothing, so at 2 a contradicted point needs one agreeing view "
+            "more than contradict it; 3 asks for one other view, a three-view track; past the workspace's size only "
+            "uncontradicted points stay")
+    fuse_max_depth_error: float = _setting(
+        0.01, "fused.ply: relative depth difference within which a view's observation agrees with a point (and "
+              "beyond which a surface seen behind it contradicts it)", unit="of the depth",
+        range=Range(0, 0.5, low_open=True),
+        why="COLMAP's stereo fusion uses 0.01; dense matches 0.5 px off at 100 px disparity are 0.5 % off in "
+            "depth; at 0.5 a surface twice as far still agrees")
 
 
 @dataclass

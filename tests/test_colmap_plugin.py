@@ -31,7 +31,6 @@ from sefm_recon.errors import InputError
 from sefm_recon.evaluate import surface_distances
 from sefm_recon.io.colmap_database import PairMatches, quantise_matches
 from sefm_recon.io.ply import read_ply_header, read_point_cloud
-from sefm_recon.reconstruct.fuse import fuse_point_clouds
 from sefm_recon.synthetic import align_to_truth, colmap_sfm, render_scene, write_workspace
 
 
@@ -154,6 +153,11 @@ def test_done_when_figures(text_run, scene3):
     report = json.loads((out / "report.json").read_text())
     assert report["sparse"]["points"] == rec.num_points3D()
     assert report["counts"]["fused_points"] == len(xyz)
+    # multi-view fusion: every fused point has a track of at least its own pair's two views, most have three
+    fusion = report["fusion"]
+    assert sum(fusion["track_lengths"]) == len(xyz) and sum(fusion["track_lengths"][:2]) < 0.01 * len(xyz)
+    assert sum(fusion["track_lengths"][3:]) > 0.5 * len(xyz)
+    assert fusion["kept"] + fusion["dropped_free_space"] + fusion["dropped_background"] == fusion["input_points"]
 
 
 @pytest.mark.slow
@@ -502,24 +506,6 @@ def test_quantisation_links_pairs_into_tracks():
     assert np.all(np.linalg.norm(d - shift, axis=1) <= 1.5 + 1e-6)
     # image 2's keypoints are shared by both pairs: three-view tracks
     assert len(np.intersect1d(m12[:, 1], m23[:, 0])) > 200
-
-
-def test_fusion_merges_duplicates_and_orients_normals():
-    rng = np.random.default_rng(1)
-    xy = rng.uniform(0, 1, (20000, 2))
-    plane = np.c_[xy, np.full(len(xy), 2.0)]
-    a = plane + rng.normal(0, 1e-4, plane.shape)
-    b = plane + rng.normal(0, 1e-4, plane.shape)  # the same surface from a second pair
-    grey = np.full((len(xy), 3), 128, np.uint8)
-    f = fuse_point_clouds([(a, grey, np.zeros(3)), (b, grey, np.array([0.5, 0, 0]))], voxel=0.01)
-    assert f.stats["input_points"] == 40000
-    assert len(f.xyz) <= 10_500  # one point per occupied 1 cm voxel of the 1 m^2 plane
-    assert np.mean(f.support >= 2) > 0.95
-    assert np.all(f.normals[:, 2] < -0.99)  # facing the cameras at z = 0
-    # with each pair's own normals (here pointing away from the cameras): averaged and turned around
-    up = np.tile([0.0, 0.0, 1.0], (len(xy), 1))
-    g = fuse_point_clouds([(a, grey, np.zeros(3)), (b, grey, np.array([0.5, 0, 0]))], voxel=0.01, normals=[up, up])
-    assert len(g.xyz) == len(f.xyz) and np.allclose(g.normals, [0.0, 0.0, -1.0])
 
 
 def test_images_are_read_without_exif_rotation(tmp_path):

@@ -48,7 +48,7 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
-__all__ = ["PairMatches", "Quantised", "add_legacy_columns", "quantise_matches", "two_view_geometry",
+__all__ = ["PairMatches", "Quantised", "StoredPairMatches", "add_legacy_columns", "quantise_matches", "two_view_geometry",
            "write_database"]
 
 #: Columns of the ``images`` table up to COLMAP 3.8 that pycolmap 4 (COLMAP >= 3.10 keeps pose priors
@@ -70,6 +70,21 @@ class PairMatches:
     score: np.ndarray  #: (N,)
 
 
+class StoredPairMatches:
+    """A pair's dense matches read from its ``matches.npz`` when asked for (one pair in memory at a time)."""
+
+    def __init__(self, image_id1: int, image_id2: int, path: str | os.PathLike):
+        self.image_id1, self.image_id2, self.path = image_id1, image_id2, Path(path)
+
+    def _get(self, key: str) -> np.ndarray:
+        with np.load(self.path) as f:
+            return f[key]
+
+    uv1 = property(lambda self: self._get("uv1"))
+    uv2 = property(lambda self: self._get("uv2"))
+    score = property(lambda self: self._get("score"))
+
+
 @dataclass
 class Quantised:
     keypoints: dict[int, np.ndarray]  #: image_id -> (K, 2) float32 keypoints
@@ -88,9 +103,12 @@ def _assign(uv: np.ndarray, score: np.ndarray, cell_size: float, max_error: floa
     bins -= bins.min(0)
     ck = cells[:, 0] * (int(cells[:, 1].max()) + 1) + cells[:, 1]
     fk = bins[:, 0] * (int(bins[:, 1].max()) + 1) + bins[:, 1]
+    del cells, bins  # an image in many pairs holds millions of endpoints: free each temporary when done
     order = np.lexsort((fk, ck))
     ck_s, fk_s = ck[order], fk[order]
+    del ck, fk
     new_group = np.r_[True, (ck_s[1:] != ck_s[:-1]) | (fk_s[1:] != fk_s[:-1])]
+    del fk_s
     group = np.cumsum(new_group) - 1  # (cell, bin) group of each sorted endpoint
     votes = np.bincount(group, weights=score[order])
     g_cell = ck_s[new_group]
@@ -150,12 +168,17 @@ def quantise_matches(pairs: list[PairMatches], cell_size: float = 4.0, max_error
     for image_id, sides in per_image.items():
         uvs = [np.asarray(pairs[p].uv1 if s == 0 else pairs[p].uv2, np.float64).reshape(-1, 2) for p, s in sides]
         scores = [np.asarray(pairs[p].score, np.float64).reshape(-1) for p, _ in sides]
-        kp, ids = _assign(np.concatenate(uvs), np.concatenate(scores), cell_size, max_error)
+        lengths = [len(uv) for uv in uvs]
+        uv_all, score_all = np.concatenate(uvs), np.concatenate(scores)
+        del uvs, scores
+        kp, ids = _assign(uv_all, score_all, cell_size, max_error)
+        del uv_all, score_all
+        ids = ids.astype(np.int32)  # held for every pair until the matches are made: half the memory
         keypoints[image_id] = kp
         start = 0
-        for (p, s), uv in zip(sides, uvs):
-            kp_ids[(p, s)] = ids[start:start + len(uv)]
-            start += len(uv)
+        for (p, s), n in zip(sides, lengths):
+            kp_ids[(p, s)] = ids[start:start + n]
+            start += n
     matches: dict[tuple[int, int], np.ndarray] = {}
     used: dict[int, list[np.ndarray]] = {i: [] for i in keypoints}
     dropped = 0

@@ -35,6 +35,7 @@ log = logging.getLogger(__name__)
 
 __all__ = [
     "atomic_path",
+    "iter_point_cloud",
     "read_mesh",
     "read_ply_header",
     "read_point_cloud",
@@ -203,6 +204,54 @@ def read_point_cloud(
     rgb = _to_uint8_colors(pcd.colors) if pcd.has_colors() else None
     normals = np.asarray(pcd.normals, dtype=np.float64).copy() if pcd.has_normals() else None
     return xyz, rgb, normals
+
+
+_PLY_TYPES = {"float": "<f4", "float32": "<f4", "double": "<f8", "float64": "<f8", "uchar": "u1", "uint8": "u1",
+              "char": "i1", "int8": "i1", "short": "<i2", "ushort": "<u2", "int": "<i4", "int32": "<i4",
+              "uint": "<u4", "uint32": "<u4"}
+
+
+def iter_point_cloud(
+    path: str | os.PathLike, block: int = 1 << 18,
+) -> Iterator[tuple[np.ndarray, np.ndarray | None, np.ndarray | None]]:
+    """Read a point cloud back in blocks of ``block`` points: ``(xyz float64, rgb uint8 or None, normals or None)``.
+
+    A binary little-endian PLY with a single vertex element of scalar properties
+    (what :func:`write_point_cloud` writes) is memory-mapped, so only one block is
+    in memory at a time; any other file is read whole and then cut into blocks.
+    """
+    path = Path(path)
+    head = read_ply_header(path)
+    els = head["elements"]
+    props = els.get("vertex", {}).get("properties", [])
+    simple = (head["format"] == "binary_little_endian" and list(els) == ["vertex"]
+              and all(t in _PLY_TYPES for t, _ in props))
+    if not simple:
+        xyz, rgb, nrm = read_point_cloud(path)
+        for s in range(0, len(xyz), block):
+            yield xyz[s:s + block], None if rgb is None else rgb[s:s + block], None if nrm is None else nrm[s:s + block]
+        return
+    dtype = np.dtype([(name, _PLY_TYPES[t]) for t, name in props])
+    n = els["vertex"]["count"]
+    with open(path, "rb") as f:
+        while f.readline().strip() != b"end_header":
+            pass
+        start = f.tell()
+    if n == 0:
+        return
+    data = np.memmap(path, dtype=dtype, mode="r", offset=start, shape=(n,))
+    names = set(dtype.names)
+    try:
+        for s in range(0, n, block):
+            chunk = data[s:s + block]
+            xyz = np.stack([chunk[c].astype(np.float64) for c in ("x", "y", "z")], 1)
+            rgb = (np.stack([chunk[c] for c in ("red", "green", "blue")], 1).astype(np.uint8)
+                   if {"red", "green", "blue"} <= names else None)
+            nrm = (np.stack([chunk[c].astype(np.float64) for c in ("nx", "ny", "nz")], 1)
+                   if {"nx", "ny", "nz"} <= names else None)
+            yield xyz, rgb, nrm
+    finally:
+        del data
 
 
 def write_mesh(

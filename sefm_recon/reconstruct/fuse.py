@@ -1,23 +1,77 @@
-"""Fusing the point clouds of several image pairs into one cloud.
+"""Multi-view consistent fusion of the point clouds of several image pairs.
 
-Pairs that overlap reconstruct the same surface twice or more. The clouds are
-merged on a voxel grid (one point per occupied voxel: the mean position and
-colour of the points in it), outliers are removed statistically, and normals are
-estimated by local PCA and turned towards the cameras that saw each point.
+As COLMAP's stereo fusion does it, a point is judged by the *other* views, not by
+its neighbours in space:
+
+1. **depth maps**: every posed image gets a z-buffer (nearest depth, and the
+   normal of that point) of the points of every pair it takes part in, at the
+   pixels where it observed them;
+2. **judging**: each point of each pair is projected into every other posed
+   view. A view *agrees* when its depth map holds, within ``WINDOW_PX`` of the
+   projection, a depth within ``max_depth_error`` (relative) of the point's with
+   a normal within ``NORMAL_TOL_DEG``; it *contradicts* the point when it sees a
+   surface behind it there (the point floats in space that view saw through: a
+   free-space violation), or when it matched nothing within
+   ``BACKGROUND_RADIUS_PX`` although it was paired with an image in which the
+   point is visible (the point lands on unmatched background). A view that
+   sees a nearer surface (the point is hidden) or lies outside says nothing.
+   A point is kept when no view contradicts it, or when at least
+   ``min_views - 2`` other views agree and fewer contradict than agree;
+3. **merging**: a kept point joins the fused point that already owns its pixel
+   (at a consistent depth) in one of the views that observe it, else starts
+   one, and claims its pixels in those views; a fused point is the mean of its
+   observations and its track is the set of views that observed or agreed with it.
+
+The pairs are read back from disk block by block (``read_blocks``), twice: once
+for the depth maps, once for judging and merging. Memory: per view a float32
+depth map, an int8x3 normal map, an owner and a depth of the fused points (14
+bytes a pixel), plus the fused points (about 90 bytes each) and one block.
 """
 
 from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, field
+from typing import Callable, Iterable, Iterator
 
 import numpy as np
 
-from .points import clean_points
-
 log = logging.getLogger(__name__)
 
-__all__ = ["FusedCloud", "fuse_point_clouds", "orient_normals"]
+__all__ = ["FusedCloud", "FusionView", "fuse_pairs", "orient_normals", "project"]
+
+#: A view agrees when one of its observations lies within this many pixels of the projection
+#: (a 3x3 window: the matches' sub-pixel positions fall into the neighbouring pixel half the time).
+WINDOW_PX = 1
+#: Largest angle between a point's normal and an agreeing observation's: per-pair normals come from
+#: 1-px grid differences and scatter by 10-20 degrees on real photos; COLMAP's 10 would reject good points.
+NORMAL_TOL_DEG = 30.0
+#: A view that matched nothing within this radius sees background there: holes up to 16 px wide inside
+#: a matched surface (a specularity, a texture-less patch) are not taken for background.
+BACKGROUND_RADIUS_PX = 8
+#: Points read and judged at a time: a block's projections into 16 views take ~50 MB.
+BLOCK_POINTS = 1 << 18
+
+
+@dataclass
+class FusionView:
+    """A posed image: ``camera`` a pycolmap.Camera, pose x_cam = R X + t."""
+
+    camera: object
+    R: np.ndarray
+    t: np.ndarray
+
+    @property
+    def width(self) -> int:
+        return int(self.camera.width)
+
+    @property
+    def height(self) -> int:
+        return int(self.camera.height)
+
+    @property
+    def centre(self) -> np.ndarray:
+        return -np.asarray(self.R).T @ np.asarray(self.t)
 
 
 @dataclass
@@ -25,21 +79,15 @@ class FusedCloud:
     xyz: np.ndarray  #: (N, 3) float64
     rgb: np.ndarray  #: (N, 3) uint8
     normals: np.ndarray  #: (N, 3) float64 unit normals, facing the cameras
-    support: np.ndarray  #: (N,) number of pairs whose points fell into the point's voxel
+    support: np.ndarray  #: (N,) number of views in the point's track
+    tracks: np.ndarray = field(default_factory=lambda: np.zeros((0, 1), np.uint64))  #: (N, words) view bit masks
+    observations: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int32))  #: (N,) pair points merged
     stats: dict = field(default_factory=dict)
 
-
-def _voxel_groups(xyz: np.ndarray, voxel: float) -> tuple[np.ndarray, int]:
-    """Voxel index of every point (0..n_voxels-1) and the number of voxels."""
-    keys = np.floor((xyz - xyz.min(0)) / voxel).astype(np.int64)
-    dims = keys.max(0) + 1
-    if float(dims[0]) * float(dims[1]) * float(dims[2]) < 2**62:
-        flat = (keys[:, 0] * dims[1] + keys[:, 1]) * dims[2] + keys[:, 2]
-        _, inv = np.unique(flat, return_inverse=True)
-    else:  # a huge extent for the voxel: unique rows instead of one integer key
-        _, inv = np.unique(keys, axis=0, return_inverse=True)
-    inv = inv.reshape(-1)
-    return inv, int(inv.max()) + 1 if len(inv) else 0
+    def track(self, i: int) -> list[int]:
+        """The views (indices into the fusion's ``views``) in point ``i``'s track."""
+        bits = self.tracks[i]
+        return [64 * w + b for w in range(len(bits)) for b in range(64) if (int(bits[w]) >> b) & 1]
 
 
 def orient_normals(normals: np.ndarray, view_dirs: np.ndarray) -> np.ndarray:
@@ -50,103 +98,166 @@ def orient_normals(normals: np.ndarray, view_dirs: np.ndarray) -> np.ndarray:
     return out
 
 
-def fuse_point_clouds(
-    clouds: list[tuple[np.ndarray, np.ndarray, np.ndarray]],
-    voxel: float,
-    normals: list[np.ndarray | None] | None = None,
-    std_ratio: float = 2.5,
-    nb_neighbors: int = 16,
-    normal_neighbors: int = 16,
+def project(view: FusionView, xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Flat pixel index (row-major, -1 outside the image or behind the camera) and depth of points in a view."""
+    Xc = np.asarray(xyz, np.float64) @ np.asarray(view.R, np.float64).T + np.asarray(view.t, np.float64)
+    z = Xc[:, 2]
+    front = z > 1e-12
+    pix = np.full(len(z), -1, np.int64)
+    if front.any():
+        uv = np.asarray(view.camera.img_from_cam(Xc[front]), np.float64).reshape(-1, 2)
+        with np.errstate(invalid="ignore"):
+            x = np.floor(uv[:, 0])
+            y = np.floor(uv[:, 1])
+        ok = np.isfinite(x) & np.isfinite(y) & (x >= 0) & (y >= 0) & (x < view.width) & (y < view.height)
+        idx = np.full(len(uv), -1, np.int64)
+        idx[ok] = y[ok].astype(np.int64) * view.width + x[ok].astype(np.int64)
+        pix[front] = idx
+    return pix, z.astype(np.float32)
+
+
+def _quantise_normals(nrm: np.ndarray | None, n: int) -> np.ndarray:
+    if nrm is None:
+        return np.zeros((n, 3), np.int8)
+    unit = nrm / np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-12)
+    return np.clip(np.rint(unit * 127.0), -127, 127).astype(np.int8)
+
+
+def _blocks(read_blocks: Callable[[int], Iterable], k: int) -> Iterator[tuple]:
+    for xyz, rgb, nrm in read_blocks(k):
+        xyz = np.asarray(xyz, np.float64).reshape(-1, 3)
+        ok = np.isfinite(xyz).all(1)
+        if nrm is not None:
+            nrm = np.asarray(nrm, np.float64).reshape(-1, 3)
+            ok &= np.isfinite(nrm).all(1)
+        if not ok.all():
+            xyz, rgb = xyz[ok], rgb[ok]
+            nrm = None if nrm is None else nrm[ok]
+        if len(xyz):
+            yield xyz, np.asarray(rgb, np.uint8).reshape(-1, 3), nrm
+
+
+def fuse_pairs(
+    views: list[FusionView],
+    pairs: list[tuple[int, int]],
+    read_blocks: Callable[[int], Iterable[tuple[np.ndarray, np.ndarray, np.ndarray | None]]],
+    min_views: int = 3,
+    max_depth_error: float = 0.01,
 ) -> FusedCloud:
-    """Merge per-pair clouds in world coordinates.
+    """Fuse the world-frame points of image pairs into one multi-view consistent cloud.
 
     Args:
-        clouds: per pair ``(xyz (N, 3), rgb (N, 3) uint8, camera_centre (3,))``;
-            the centre is that of a camera that saw the points (the pair's first),
-            used to orient the normals.
-        voxel: voxel edge, world units (> 0).
-        normals: optional per-cloud (N, 3) unit normals (each pair's own, from
-            its denser neighbourhoods); a fused point gets the mean of those in
-            its voxel, turned towards its cameras. Without them (or where one is
-            missing), normals are estimated on the fused cloud (slower).
-        std_ratio, nb_neighbors: statistical outlier removal (see
-            :func:`~sefm_recon.reconstruct.points.clean_points`).
+        views: every posed image (a point is checked against all of them).
+        pairs: per pair, the indices into ``views`` of its two images.
+        read_blocks: ``read_blocks(k)`` yields pair ``k``'s points as blocks of
+            ``(xyz (n, 3), rgb (n, 3) uint8, normals (n, 3) or None)``; called twice per pair.
+        min_views: views (the pair's two included) that must agree with a point for it to outweigh a
+            minority of contradicting views; points with fewer are kept only where no view contradicts them.
+        max_depth_error: relative depth difference within which two observations agree.
 
     Returns:
-        The fused cloud; ``stats`` has ``input_points``, ``voxel``,
-        ``merged_points``, ``multi_pair_points`` (voxels filled by two or more
-        pairs) and ``points``.
+        The fused cloud; ``stats``: ``input_points``, ``kept`` (pair points kept), ``kept_unconfirmed``
+        (kept with no other view agreeing), ``dropped_free_space``, ``dropped_background``, ``merged``,
+        ``points``, ``mean_track_length`` and ``track_lengths`` (a histogram, index = views).
     """
-    import open3d as o3d
+    from .kernels import fuse_block, zbuffer_insert
 
-    if voxel <= 0 or not np.isfinite(voxel):
-        raise ValueError(f"voxel must be positive, got {voxel}")
-    if normals is None or len(normals) != len(clouds) or any(n is None for n in normals):
-        normals = [None] * len(clouds)
-    parts = [(np.asarray(x, np.float64).reshape(-1, 3), np.asarray(c, np.uint8).reshape(-1, 3),
-              np.asarray(C, np.float64).reshape(3), None if n is None else np.asarray(n, np.float64).reshape(-1, 3))
-             for (x, c, C), n in zip(clouds, normals)]
-    parts = [p for p in parts if len(p[0])]
-    have_normals = bool(parts) and all(p[3] is not None and len(p[3]) == len(p[0]) for p in parts)
-    n_in = sum(len(p[0]) for p in parts)
-    empty = FusedCloud(np.zeros((0, 3)), np.zeros((0, 3), np.uint8), np.zeros((0, 3)), np.zeros(0, np.int64),
-                       {"input_points": n_in, "voxel": voxel, "merged_points": 0, "multi_pair_points": 0,
-                        "points": 0})
-    if not parts:
-        return empty
-    xyz = np.concatenate([p[0] for p in parts])
-    rgb = np.concatenate([p[1] for p in parts]).astype(np.float64)
-    src = np.concatenate([np.full(len(p[0]), k, np.int64) for k, p in enumerate(parts)])
-    centres = np.stack([p[2] for p in parts])
-    nrm = np.concatenate([p[3] for p in parts]) if have_normals else None
-    ok = np.isfinite(xyz).all(1)
-    if nrm is not None:
-        ok &= np.isfinite(nrm).all(1)
-        nrm = nrm[ok]
-    xyz, rgb, src = xyz[ok], rgb[ok], src[ok]
-    view = centres[src] - xyz
-    view /= np.maximum(np.linalg.norm(view, axis=1, keepdims=True), 1e-12)
+    if not max_depth_error > 0:
+        raise ValueError(f"max_depth_error must be positive, got {max_depth_error}")
+    V = len(views)
+    sizes = np.array([v.width * v.height for v in views], np.int64)
+    offs = np.r_[0, np.cumsum(sizes)].astype(np.int64)
+    widths = np.array([v.width for v in views], np.int64)
+    heights = np.array([v.height for v in views], np.int64)
+    total = int(offs[-1])
+    depth = np.full(total, np.inf, np.float32)
+    nmap = np.zeros((total, 3), np.int8)
+    adj = np.zeros((V, V), np.bool_)
+    have_normals = True
+    n_in = 0
+    # 1. depth maps
+    for k, (a, b) in enumerate(pairs):
+        adj[a, b] = adj[b, a] = True
+        for xyz, _rgb, nrm in _blocks(read_blocks, k):
+            n_in += len(xyz)
+            have_normals &= nrm is not None
+            nq = _quantise_normals(nrm, len(xyz))
+            for j in (a, b):
+                pix, z = project(views[j], xyz)
+                pix[pix >= 0] += offs[j]
+                zbuffer_insert(depth, nmap, pix, z, nq)
+    near = np.zeros(total, np.uint8)
+    import cv2
 
-    inv, n_vox = _voxel_groups(xyz, voxel)
-    cnt = np.bincount(inv, minlength=n_vox).astype(np.float64)
-    mean = lambda a: np.stack([np.bincount(inv, a[:, k], n_vox) for k in range(a.shape[1])], 1) / cnt[:, None]  # noqa: E731
-    fx, frgb, fview = mean(xyz), mean(rgb), mean(view)
-    fn = None
-    if nrm is not None:
-        nrm = orient_normals(nrm, view)  # each towards its own camera before averaging
-        fn = mean(nrm)
-        weak = np.linalg.norm(fn, axis=1) < 1e-3  # opposite normals cancelled: keep one of them
-        if weak.any():
-            first = np.full(n_vox, -1, np.int64)
-            first[inv[::-1]] = np.arange(len(inv))[::-1]
-            fn[weak] = nrm[first[weak]]
-    # pairs per voxel: distinct (voxel, pair) combinations
-    vp = np.unique(inv * len(parts) + src)
-    support = np.bincount(vp // len(parts), minlength=n_vox)
+    kernel = cv2.getStructuringElement(cv2.MORPH_RECT, (2 * BACKGROUND_RADIUS_PX + 1,) * 2)
+    for j in range(V):
+        m = np.isfinite(depth[offs[j]:offs[j + 1]]).reshape(heights[j], widths[j]).astype(np.uint8)
+        near[offs[j]:offs[j + 1]] = cv2.dilate(m, kernel).reshape(-1)
+    cos_min = float(np.cos(np.radians(NORMAL_TOL_DEG))) if have_normals else -2.0
 
-    keep = clean_points(fx, nb_neighbors=nb_neighbors, std_ratio=std_ratio) if n_vox > nb_neighbors else np.ones(
-        n_vox, bool)
-    fx, frgb, fview, support = fx[keep], frgb[keep], fview[keep], support[keep]
-
-    normals = np.zeros_like(fx)
-    if fn is not None:
-        normals = fn[keep]
-        normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
-        normals = orient_normals(normals, fview)
-    elif len(fx) >= 3:
-        pcd = o3d.geometry.PointCloud()
-        pcd.points = o3d.utility.Vector3dVector(fx)
-        pcd.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(knn=int(normal_neighbors)))
-        normals = np.asarray(pcd.normals, np.float64).copy()
-        normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
-        normals = orient_normals(normals, fview)
+    # 2. judge and merge
+    owner = np.full(total, -1, np.int32)
+    fdepth = np.zeros(total, np.float32)
+    words = (V + 63) // 64
+    cap = 0
+    sxyz = np.zeros((0, 3))
+    srgb = np.zeros((0, 3))
+    snrm = np.zeros((0, 3))
+    nobs = np.zeros(0, np.int32)
+    track = np.zeros((0, words), np.uint64)
+    n_fused = np.zeros(1, np.int64)
+    counts = np.zeros(5, np.int64)
+    min_agree = max(0, int(min_views) - 2)
+    for k, (a, b) in enumerate(pairs):
+        for xyz, rgb, nrm in _blocks(read_blocks, k):
+            need = int(n_fused[0]) + len(xyz)
+            if need > cap:  # grow the accumulators (geometric, so copies stay rare)
+                cap = max(need, int(cap * 1.5), 1 << 16)
+                grow = lambda arr, shape: np.concatenate([arr, np.zeros((cap - len(arr),) + shape, arr.dtype)])  # noqa: E731
+                sxyz, srgb, snrm = grow(sxyz, (3,)), grow(srgb, (3,)), grow(snrm, (3,))
+                nobs, track = grow(nobs, ()), grow(track, (words,))
+            proj = [project(v, xyz) for v in views]
+            pix = np.stack([p for p, _ in proj])
+            z = np.stack([zz for _, zz in proj])
+            del proj
+            nq = _quantise_normals(nrm, len(xyz))
+            nrm_w = np.zeros((len(xyz), 3)) if nrm is None else nrm
+            fuse_block(a, b, pix, z, xyz, rgb.astype(np.float64), nrm_w, nq, depth, nmap, near, offs, widths,
+                       heights, adj, owner, fdepth, sxyz, srgb, snrm, nobs, track, n_fused, counts,
+                       float(max_depth_error), cos_min, WINDOW_PX, min_agree)
+    del depth, nmap, near, owner, fdepth
+    n = int(n_fused[0])
+    cnt = np.maximum(nobs[:n], 1).astype(np.float64)[:, None]
+    fx = sxyz[:n] / cnt
+    frgb = np.clip(np.rint(srgb[:n] / cnt), 0, 255).astype(np.uint8)
+    tracks = track[:n].copy()
+    support = np.zeros(n, np.int64)
+    view_dir = np.zeros((n, 3))
+    centres = np.stack([v.centre for v in views]) if V else np.zeros((0, 3))
+    for j in range(V):
+        inj = ((tracks[:, j // 64] >> np.uint64(j % 64)) & np.uint64(1)).astype(bool)
+        support += inj
+        d = centres[j] - fx[inj]
+        view_dir[inj] += d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
+    normals = snrm[:n].copy()
+    if not have_normals:
+        normals = view_dir.copy()
+    normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
+    normals = orient_normals(normals, view_dir)
+    hist = np.bincount(support, minlength=V + 1)
     stats = {
         "input_points": int(n_in),
-        "voxel": float(voxel),
-        "merged_points": int(n_vox),
-        "multi_pair_points": int(np.sum(support >= 2)),
-        "points": int(len(fx)),
+        "kept": int(counts[0]),
+        "kept_unconfirmed": int(counts[1]),
+        "dropped_free_space": int(counts[2]),
+        "dropped_background": int(counts[3]),
+        "merged": int(counts[4]),
+        "points": n,
+        "mean_track_length": round(float(support.mean()), 3) if n else 0.0,
+        "track_lengths": [int(h) for h in hist],
+        "min_views": int(min_views),
+        "max_depth_error": float(max_depth_error),
     }
-    log.info("fused %d points from %d pairs into %d (voxel %.4g, %d outliers removed)", n_in, len(parts),
-             len(fx), voxel, n_vox - len(fx))
-    return FusedCloud(fx, np.clip(np.rint(frgb), 0, 255).astype(np.uint8), normals, support, stats)
+    log.info("fused %d points of %d pairs into %d (%d dropped: %d in free space, %d on background; mean track "
+             "%.2f views)", n_in, len(pairs), n, n_in - counts[0], counts[2], counts[3], stats["mean_track_length"])
+    return FusedCloud(fx, frgb, normals, support, tracks, nobs[:n].copy(), stats)

@@ -91,3 +91,142 @@ def bilinear_sample(img, uv):
             for ch in range(C):
                 out[k, ch] = np.nan
     return out
+
+
+# ------------------------------------------------------------------ multi-view fusion (see fuse.py)
+
+
+@njit(cache=True)
+def zbuffer_insert(depth, nmap, pix, z, nq):
+    """Keep the nearest depth (and its quantised normal) of each pixel; ``pix`` -1 = not in the view."""
+    for k in range(pix.shape[0]):
+        p = pix[k]
+        if p >= 0 and z[k] < depth[p]:
+            depth[p] = z[k]
+            nmap[p, 0] = nq[k, 0]
+            nmap[p, 1] = nq[k, 1]
+            nmap[p, 2] = nq[k, 2]
+
+
+@njit(cache=True)
+def _window(depth, nmap, off, w, h, p, z, nq, tol, cos_min, r):
+    """Around pixel ``p`` of one view: (an agreeing depth found, nearest depth in the window)."""
+    x0 = p % w
+    y0 = p // w
+    agree = False
+    wmin = np.inf
+    for dy in range(-r, r + 1):
+        y = y0 + dy
+        if y < 0 or y >= h:
+            continue
+        for dx in range(-r, r + 1):
+            x = x0 + dx
+            if x < 0 or x >= w:
+                continue
+            q = off + y * w + x
+            d = depth[q]
+            if d < wmin:
+                wmin = d
+            if abs(d - z) <= tol * z:
+                if cos_min > -1.0:
+                    dot = (np.float64(nmap[q, 0]) * nq[0] + np.float64(nmap[q, 1]) * nq[1]
+                           + np.float64(nmap[q, 2]) * nq[2]) / (127.0 * 127.0)
+                    if dot < cos_min:
+                        continue
+                agree = True
+    return agree, wmin
+
+
+@njit(cache=True)
+def fuse_block(a, b, pix, z, xyz, rgb, nrm, nq, depth, nmap, near, offs, widths, heights, adj,
+               owner, fdepth, sxyz, srgb, snrm, nobs, track, n_fused, counts,
+               tol, cos_min, r, min_agree):
+    """Judge and merge one block of a pair's points against every view's depth map.
+
+    ``pix``/``z`` (V, n): each point's pixel (flat, -1 outside or behind) and depth
+    in every view. A point is kept when no view contradicts it, or when at least
+    ``min_agree`` other views agree and fewer contradict than agree. A kept point
+    joins the fused point that already owns its pixel in one of its views (at a
+    consistent depth), else starts one; it then claims its pixels in those views.
+    ``counts``: [kept, kept without other views, free-space drops, background
+    drops, merged into an existing point].
+    """
+    V = pix.shape[0]
+    n = pix.shape[1]
+    words = track.shape[1]
+    inview = np.zeros(V, np.bool_)
+    for k in range(n):
+        agree = 0
+        contra = 0
+        freesp = 0
+        for j in range(V):
+            inview[j] = False
+        inview[a] = pix[a, k] >= 0
+        inview[b] = pix[b, k] >= 0
+        for j in (a, b):  # a nearer surface at the very pixel that observed the point: another pair saw through it
+            if inview[j] and depth[offs[j] + pix[j, k]] < z[j, k] * (1.0 - tol):
+                contra += 1
+                freesp += 1
+        for j in range(V):
+            p = pix[j, k]
+            if j == a or j == b or p < 0:
+                continue
+            zj = z[j, k]
+            ok, wmin = _window(depth, nmap, offs[j], widths[j], heights[j], p, zj, nq[k], tol, cos_min, r)
+            if ok:
+                agree += 1
+                inview[j] = True
+            elif wmin < np.inf:
+                if wmin > zj * (1.0 + tol):  # the view sees a surface behind the point: free space
+                    contra += 1
+                    freesp += 1
+            elif near[offs[j] + p] == 0:
+                # nothing matched anywhere near: background, if a pair of this view could have matched it
+                for m in range(V):
+                    if adj[j, m] and pix[m, k] >= 0:
+                        pm = pix[m, k]
+                        ok2, wmin2 = _window(depth, nmap, offs[m], widths[m], heights[m], pm, z[m, k], nq[k],
+                                             tol, -2.0, r)
+                        if not (wmin2 < z[m, k] * (1.0 - tol)):  # not hidden in the partner view
+                            contra += 1
+                            break
+        if not (contra == 0 or (agree >= min_agree and contra < agree)):
+            if freesp > 0:
+                counts[2] += 1
+            else:
+                counts[3] += 1
+            continue
+        counts[0] += 1
+        if agree == 0:
+            counts[1] += 1
+        # merge: the fused point owning one of this point's pixels at a consistent depth
+        fid = -1
+        for j in (a, b):
+            if not inview[j]:
+                continue
+            q = offs[j] + pix[j, k]
+            o = owner[q]
+            if o >= 0 and abs(fdepth[q] - z[j, k]) <= tol * z[j, k]:
+                fid = o
+                break
+        if fid < 0:
+            fid = n_fused[0]
+            n_fused[0] += 1
+        else:
+            counts[4] += 1
+        for c in range(3):
+            sxyz[fid, c] += xyz[k, c]
+            srgb[fid, c] += rgb[k, c]
+            snrm[fid, c] += nrm[k, c]
+        nobs[fid] += 1
+        for j in range(V):
+            if not inview[j]:
+                continue
+            track[fid, j // 64] |= np.uint64(1) << np.uint64(j % 64)
+            if j != a and j != b:  # an agreeing view joins the track; only observing views claim pixels
+                continue
+            q = offs[j] + pix[j, k]
+            if owner[q] < 0:
+                owner[q] = fid
+                fdepth[q] = z[j, k]
+    return words
