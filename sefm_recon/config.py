@@ -337,12 +337,12 @@ class ColmapConfig:
         1.5, "COLMAP's triangulator: smallest triangulation angle of a point in sparse/", unit="degrees",
         range=Range(0, 90), why="as geometry.min_tri_angle_deg")
     fuse_min_views: int = _setting(
-        3, "fused.ply: views (the pair's two included) that must agree with a point for it to be kept although "
-           "a minority of views contradict it; a point with fewer is kept only where no view contradicts it",
+        3, "fused.ply keeps a point that this many views agree with (its pair's two included) and fewer "
+           "contradict; at 2 also a pair's point no other view confirms, where none contradicts or hides it",
         unit="views", range=Range(2, 1000),
-        why="a pair's own two views confirm nothing, so at 2 a contradicted point needs one agreeing view "
-            "more than contradict it; 3 asks for one other view, a three-view track; past the workspace's size only "
-            "uncontradicted points stay")
+        why="a pair's own two views confirm nothing: 3 asks for one other view, a three-view track (COLMAP's "
+            "fusion asks for 5 depth maps); at 2 points only one pair sees stay; past the number of views "
+            "nothing is kept")
     fuse_max_depth_error: float = _setting(
         0.01, "fused.ply: relative depth difference within which a view's observation agrees with a point (and "
               "beyond which a surface seen behind it contradicts it)", unit="of the depth",

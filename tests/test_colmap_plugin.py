@@ -153,11 +153,12 @@ def test_done_when_figures(text_run, scene3):
     report = json.loads((out / "report.json").read_text())
     assert report["sparse"]["points"] == rec.num_points3D()
     assert report["counts"]["fused_points"] == len(xyz)
-    # multi-view fusion: every fused point has a track of at least its own pair's two views, most have three
+    # multi-view fusion: every fused point has a track of its own pair's two views and at least one other
     fusion = report["fusion"]
-    assert sum(fusion["track_lengths"]) == len(xyz) and sum(fusion["track_lengths"][:2]) < 0.01 * len(xyz)
-    assert sum(fusion["track_lengths"][3:]) > 0.5 * len(xyz)
-    assert fusion["kept"] + fusion["dropped_free_space"] + fusion["dropped_background"] == fusion["input_points"]
+    assert sum(fusion["track_lengths"]) == len(xyz) and sum(fusion["track_lengths"][:3]) < 0.01 * len(xyz)
+    dropped = sum(fusion[k] for k in ("dropped_free_space", "dropped_background", "dropped_hidden",
+                                      "dropped_unconfirmed"))
+    assert fusion["kept"] + dropped == fusion["input_points"]
 
 
 @pytest.mark.slow

@@ -14,9 +14,13 @@ its neighbours in space:
    free-space violation), or when it matched nothing within
    ``BACKGROUND_RADIUS_PX`` although it was paired with an image in which the
    point is visible (the point lands on unmatched background). A view that
-   sees a nearer surface (the point is hidden) or lies outside says nothing.
-   A point is kept when no view contradicts it, or when at least
-   ``min_views - 2`` other views agree and fewer contradict than agree;
+   sees a nearer surface hides the point; one it lies outside says nothing.
+   A point is kept when at least ``min_views - 2`` (and at least one) other
+   views agree and fewer contradict than agree. With ``min_views`` 2, a point
+   that only its own pair sees is kept too, where no view contradicts it or
+   hides it (a point that only one pair sees although another view looks at
+   the place must be behind something there); with 3 (the default, as COLMAP
+   keeps no point fewer than its ``min_num_pixels`` views see) it is dropped;
 3. **merging**: a kept point joins the fused point that already owns its pixel
    (at a consistent depth) in one of the views that observe it, else starts
    one, and claims its pixels in those views; a fused point is the mean of its
@@ -151,13 +155,15 @@ def fuse_pairs(
         pairs: per pair, the indices into ``views`` of its two images.
         read_blocks: ``read_blocks(k)`` yields pair ``k``'s points as blocks of
             ``(xyz (n, 3), rgb (n, 3) uint8, normals (n, 3) or None)``; called twice per pair.
-        min_views: views (the pair's two included) that must agree with a point for it to outweigh a
-            minority of contradicting views; points with fewer are kept only where no view contradicts them.
+        min_views: views (the pair's two included) that must agree with a point (at least 3: one other
+            view); 2 keeps a pair's point that no other view agrees with where no view contradicts or hides it.
         max_depth_error: relative depth difference within which two observations agree.
 
     Returns:
         The fused cloud; ``stats``: ``input_points``, ``kept`` (pair points kept), ``kept_unconfirmed``
-        (kept with no other view agreeing), ``dropped_free_space``, ``dropped_background``, ``merged``,
+        (kept with no other view agreeing), ``dropped_free_space``, ``dropped_background``,
+        ``dropped_hidden`` (seen by too few views, hidden in another), ``dropped_unconfirmed`` (too few
+        views agree, none contradicts), ``merged``,
         ``points``, ``mean_track_length`` and ``track_lengths`` (a histogram, index = views).
     """
     from .kernels import fuse_block, zbuffer_insert
@@ -206,7 +212,7 @@ def fuse_pairs(
     nobs = np.zeros(0, np.int32)
     track = np.zeros((0, words), np.uint64)
     n_fused = np.zeros(1, np.int64)
-    counts = np.zeros(5, np.int64)
+    counts = np.zeros(7, np.int64)
     min_agree = max(0, int(min_views) - 2)
     for k, (a, b) in enumerate(pairs):
         for xyz, rgb, nrm in _blocks(read_blocks, k):
@@ -251,6 +257,8 @@ def fuse_pairs(
         "kept_unconfirmed": int(counts[1]),
         "dropped_free_space": int(counts[2]),
         "dropped_background": int(counts[3]),
+        "dropped_hidden": int(counts[5]),
+        "dropped_unconfirmed": int(counts[6]),
         "merged": int(counts[4]),
         "points": n,
         "mean_track_length": round(float(support.mean()), 3) if n else 0.0,
@@ -258,6 +266,7 @@ def fuse_pairs(
         "min_views": int(min_views),
         "max_depth_error": float(max_depth_error),
     }
-    log.info("fused %d points of %d pairs into %d (%d dropped: %d in free space, %d on background; mean track "
-             "%.2f views)", n_in, len(pairs), n, n_in - counts[0], counts[2], counts[3], stats["mean_track_length"])
+    log.info("fused %d points of %d pairs into %d (%d dropped: %d in free space, %d on background, %d hidden in "
+             "another view, %d confirmed by too few views; mean track %.2f views)", n_in, len(pairs), n,
+             n_in - counts[0], counts[2], counts[3], counts[5], counts[6], stats["mean_track_length"])
     return FusedCloud(fx, frgb, normals, support, tracks, nobs[:n].copy(), stats)
