@@ -60,20 +60,19 @@ def fountain_workspace(src: Path, dst: Path, n: int, scale: float) -> None:
     """fountain-P11's first ``n`` photos downscaled by ``scale`` (INTER_AREA), cameras from gt_dense_cameras."""
     import cv2
 
+    from sefm_recon.io.cameras import read_strecha_camera
+
     (dst / "images").mkdir(parents=True, exist_ok=True)
     entries = []
     for name in sorted(p.name for p in (src / "images").glob("*.jpg"))[:n]:
-        v = np.array((src / "gt_dense_cameras" / f"{name}.camera").read_text().split(), float)
-        K, R_c2w, C, W, H = v[:9].reshape(3, 3).copy(), v[12:21].reshape(3, 3), v[21:24], int(v[24]), int(v[25])
-        K[0, 2] += 0.5  # integer pixel centres -> COLMAP's (README)
-        K[1, 2] += 0.5
+        K, R, t, (W, H) = read_strecha_camera(src / "gt_dense_cameras" / f"{name}.camera")
         K[:2] *= scale
         w, h = int(round(W * scale)), int(round(H * scale))
         img = cv2.imread(str(src / "images" / name), cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION)
         if (w, h) != (W, H):
             img = cv2.resize(img, (w, h), interpolation=cv2.INTER_AREA)
         cv2.imwrite(str(dst / "images" / name), img, [cv2.IMWRITE_JPEG_QUALITY, 95])
-        entries.append((name, K, R_c2w.T, -R_c2w.T @ C, w, h))
+        entries.append((name, K, R, t, w, h))
     _write_model(dst, entries)
 
 

@@ -11,7 +11,7 @@ dense matches' median distance from the TRUE epipolar lines (the property that
 decides whether the matches are right whatever the focal length), and for the
 real pairs with dense ground truth the precision and coverage at 1 px. fountain-P11
 runs on its neighbouring photos at 1536x1024 (the issue's size), its principal
-point 0.5 px shifted to COLMAP's convention (../shared/data/multiview/README.md).
+point 0.5 px shifted to COLMAP's convention (:func:`sefm_recon.io.cameras.read_strecha_camera`).
 """
 
 from __future__ import annotations
@@ -29,7 +29,7 @@ import numpy as np
 from sefm_recon.config import load_config
 from sefm_recon.errors import InputError
 from sefm_recon.geometry.two_view import TwoView, epipolar_distances
-from sefm_recon.io.cameras import default_camera
+from sefm_recon.io.cameras import default_camera, read_strecha_camera
 from sefm_recon.io.images import read_image
 from sefm_recon.pipeline import reconstruct_pair
 
@@ -42,12 +42,9 @@ def fountain_cases(folder: Path):
     names = sorted(p.name for p in (folder / "images").glob("*.jpg"))
     cams = []
     for n in names:
-        v = np.loadtxt(folder / "gt_dense_cameras" / f"{n}.camera", max_rows=8)
-        K, Rw, C = v[0:3].copy(), v[4:7], v[7]
-        s = FOUNTAIN_SIZE[0] / 3072
-        K[:2] *= s
-        K[:2, 2] += 0.5 * s  # integer pixel centres -> COLMAP's
-        cams.append((K, Rw.T, -Rw.T @ C))
+        K, R, t, (w, _) = read_strecha_camera(folder / "gt_dense_cameras" / f"{n}.camera")
+        K[:2] *= FOUNTAIN_SIZE[0] / w  # COLMAP's pixel edges scale exactly
+        cams.append((K, R, t))
     for i in range(len(names) - 1):
         (K, R1, t1), (_, R2, t2) = cams[i], cams[i + 1]
         imgs = [cv2.resize(read_image(folder / "images" / n), FOUNTAIN_SIZE, interpolation=cv2.INTER_AREA)

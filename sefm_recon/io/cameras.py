@@ -142,3 +142,17 @@ def has_distortion(camera: pycolmap.Camera) -> bool:
         return False
     extra = np.asarray(camera.params)[list(camera.extra_params_idxs())]
     return bool(np.any(np.abs(extra) > 0))
+
+
+def read_strecha_camera(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, tuple[int, int]]:
+    """A ``*.camera`` file of Strecha et al.'s data sets (fountain-P11) in COLMAP's terms.
+
+    The file holds K (3x3), 3 distortion values, R camera-to-world (3x3), the centre
+    C and the size; its principal point assumes integer pixel centres.
+    Returns ``K`` (principal point moved by 0.5 to COLMAP's pixel centres),
+    ``R``, ``t`` (``x_cam = R @ X + t``) and ``(width, height)``.
+    """
+    v = np.array(Path(path).read_text().split(), float)
+    K, R_c2w, C = v[:9].reshape(3, 3).copy(), v[12:21].reshape(3, 3), v[21:24]
+    K[:2, 2] += 0.5
+    return K, R_c2w.T, -R_c2w.T @ C, (int(v[24]), int(v[25]))
