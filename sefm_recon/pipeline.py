@@ -81,7 +81,6 @@ def resolve_cameras(path1, path2, img1, img2, camera: str | None, camera2: str |
     for i, (cam, src) in enumerate(zip(cams, sources), start=1):
         logger.info("camera %d: focal length %.1f px %s; %s", i, cam.mean_focal_length(), said.get(src, src),
                     camera_to_string(cam))
-
     return cams[0], cams[1], sources
 
 
@@ -216,9 +215,9 @@ def _estimate_focal(v1: WorkingView, v2: WorkingView, fit: tuple | None, cfg: Co
     from .geometry.undistort import pinhole_matrix
 
     note = {"fundamental_inliers": 0 if fit is None else int(fit[1].sum()), "source": "default"}
-    if fit is None or fit[1].sum() < cfg.geometry.min_inliers:
+    if note["fundamental_inliers"] < cfg.geometry.min_inliers:
         return v1, v2, note  # too few matches: estimate_two_view says so
-    est = estimate_focal(fit[0], v1.size, v2.size, num_inliers=int(fit[1].sum()),
+    est = estimate_focal(fit[0], v1.size, v2.size,
                          K1=v1.K if v1.camera.has_prior_focal_length else None,
                          K2=v2.K if v2.camera.has_prior_focal_length else None)
     note.update(factor=round(est.factor, 4), cost=float(f"{est.cost:.3g}"), cost_rise=float(f"{est.rise:.3g}"),
@@ -316,13 +315,16 @@ def _check_and_refine_pose(v1: WorkingView, v2: WorkingView, tv, dm: DenseMatche
                             "refined_pose_epipolar_px": None if np.isnan(after) else round(after, 3)}}
     logger.debug("pose check: %d of %d dense matches tracked in 2-D; median %.2f px from the SIFT pose's lines, "
                 "%.2f px from the refined pose's", len(tracks.uv1), tracks.tried, before, after)
+    final = before
     if new is not None and before > REMATCH_PX and after < REMATCH_GAIN * before:
         rot, tr = pose_change_deg(tv, new)
         logger.info("pose refined with the dense matches (%.2f deg rotation, %.2f deg translation direction): "
                     "matching again", rot, tr)
         notes["pose_check"]["refined_change_deg"] = [round(rot, 3), round(tr, 3)]
-        tv = new
+        tv, final = new, after
         dm = _match(v1, v2, tv, cfg, progress)
+    # the pose kept's distance from the tracks (None: too few tracks to judge it)
+    notes["pose_check"]["final_pose_epipolar_px"] = None if np.isnan(final) else round(final, 3)
     return tv, dm, notes
 
 
@@ -337,8 +339,8 @@ MAX_UNKNOWN_CAMERA_TRACK_PX = 0.5
 
 def _check_unknown_camera(check: dict, focal: dict) -> None:
     """Refuse the pose of a guessed or estimated camera that the dense tracks do not bear out."""
-    px = check.get("refined_pose_epipolar_px") if "refined_change_deg" in check else check.get("sift_pose_epipolar_px")
-    if px is None or not np.isfinite(px):
+    px = check.get("final_pose_epipolar_px")
+    if px is None:
         return
     focal["track_epipolar_px"] = px
     if px > MAX_UNKNOWN_CAMERA_TRACK_PX:

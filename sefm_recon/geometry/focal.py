@@ -49,7 +49,6 @@ class FocalEstimate:
     factor: float  #: focal length over the longer image side
     cost: float  #: the cost at ``factor`` (0 for an exact essential matrix)
     rise: float  #: the least rise of the cost at ``factor`` times and over :data:`DETERMINED_FACTOR`
-    num_inliers: int  #: inliers of the fundamental matrix
 
     @property
     def determined(self) -> bool:
@@ -83,7 +82,7 @@ def fundamental_matrix(xy1: np.ndarray, xy2: np.ndarray, max_error: float = 2.0)
 
 
 def estimate_focal(F: np.ndarray, size1: tuple[int, int], size2: tuple[int, int], *, K1: np.ndarray | None = None,
-                   K2: np.ndarray | None = None, num_inliers: int = 0) -> FocalEstimate:
+                   K2: np.ndarray | None = None) -> FocalEstimate:
     """The focal factor that makes ``F`` most nearly essential: a log-spaced search, then a parabola.
 
     Args:
@@ -111,4 +110,4 @@ def estimate_focal(F: np.ndarray, size1: tuple[int, int], size2: tuple[int, int]
             best = float(np.exp(np.log(best) + 0.5 * step * (c0 - c2) / den))
     c = cost(best)
     rise = min(cost(best * DETERMINED_FACTOR), cost(best / DETERMINED_FACTOR)) - c
-    return FocalEstimate(float(best), c, float(rise), int(num_inliers))
+    return FocalEstimate(float(best), c, float(rise))
