@@ -85,6 +85,9 @@ def test_a_point_only_one_pair_sees_is_kept_when_no_view_contradicts_it():
     # by default a point needs a third view
     g = _fuse(views, [(0, 1)], [_cloud(plane)])
     assert g.stats["kept"] == 0 and g.stats["dropped_unconfirmed"] == len(plane)
+    # ... unless the workspace has no third view
+    h = _fuse(views[:2], [(0, 1)], [_cloud(plane)])
+    assert h.stats["kept"] == len(plane)
 
 
 def test_a_point_one_pair_sees_and_another_view_would_see_in_front_of_it_is_dropped():

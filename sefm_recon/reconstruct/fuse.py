@@ -157,6 +157,7 @@ def fuse_pairs(
             ``(xyz (n, 3), rgb (n, 3) uint8, normals (n, 3) or None)``; called twice per pair.
         min_views: views (the pair's two included) that must agree with a point (at least 3: one other
             view); 2 keeps a pair's point that no other view agrees with where no view contradicts or hides it.
+            At most the number of views counts (a two-view workspace keeps its pair's points).
         max_depth_error: relative depth difference within which two observations agree.
 
     Returns:
@@ -213,7 +214,7 @@ def fuse_pairs(
     track = np.zeros((0, words), np.uint64)
     n_fused = np.zeros(1, np.int64)
     counts = np.zeros(7, np.int64)
-    min_agree = max(0, int(min_views) - 2)
+    min_agree = max(0, min(int(min_views), V) - 2)  # a workspace of two views: its pair's points, unjudged
     for k, (a, b) in enumerate(pairs):
         for xyz, rgb, nrm in _blocks(read_blocks, k):
             need = int(n_fused[0]) + len(xyz)
