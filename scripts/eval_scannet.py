@@ -21,12 +21,11 @@ import numpy as np
 
 from sefm_recon.config import load_config
 from sefm_recon.errors import InputError
-from sefm_recon.geometry.two_view import TwoView, epipolar_distances, estimate_two_view, sift_correspondences
+from sefm_recon.geometry.two_view import TwoView, epipolar_distances
 from sefm_recon.geometry.undistort import make_working_view
-from sefm_recon.io.images import to_gray
 from sefm_recon.io.cameras import pinhole_camera
 from sefm_recon.io.images import read_image
-from sefm_recon.pipeline import reconstruct_pair
+from sefm_recon.pipeline import reconstruct_pair, two_view_stage
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data" / "real" / "scannet"
@@ -51,15 +50,10 @@ def angle_deg(R):
 
 
 def two_view_only(img0, img1, cam0, cam1, cfg):
-    """The pipeline's SIFT pose stage alone (as :func:`reconstruct_pair` runs it)."""
+    """The pipeline's SIFT pose stage alone (:func:`sefm_recon.pipeline.two_view_stage`)."""
     v0 = make_working_view(img0, cam0, cfg.output.max_size)
     v1 = make_working_view(img1, cam1, cfg.output.max_size)
-    s, g = cfg.sift, cfg.geometry
-    xy0, xy1 = sift_correspondences(to_gray(v0.image), to_gray(v1.image), s.max_features, s.max_ratio,
-                                    min_features=g.min_inliers, max_size=s.max_image_size,
-                                    upsample_max_size=s.upsample_max_size)
-    return estimate_two_view(xy0, xy1, v0.K, v1.K, v0.size, v1.size, g.min_inliers, g.ransac_max_error,
-                             g.min_tri_angle_deg)
+    return two_view_stage(v0, v1, cfg)[0]
 
 
 def main():
@@ -76,7 +70,9 @@ def main():
     for n0, n1, K0, K1, R, t in read_pairs(args.data):
         img0, img1 = read_image(args.data / n0), read_image(args.data / n1)
         cam0 = pinhole_camera(K0, img0.shape[1], img0.shape[0], 1)
+        cam0.has_prior_focal_length = True  # the true camera, as if given with --camera
         cam1 = pinhole_camera(K1, img1.shape[1], img1.shape[0], 2)
+        cam1.has_prior_focal_length = True
         row = {"pair": f"{n0} {n1}"}
         if args.two_view_only:
             try:

@@ -736,7 +736,8 @@ def run_colmap(
         fused = fuse_pairs(
             views, [(view_of[states[i].a], view_of[states[i].b]) for i in done_idx],
             lambda k: iter_point_cloud(results[done_idx[k]]["folder"] / "points.ply", FUSE_BLOCK),
-            min_views=cfg.colmap.fuse_min_views, max_depth_error=cfg.colmap.fuse_max_depth_error)
+            # two posed images have no third view to agree: their points stand where none contradicts them
+            min_views=min(cfg.colmap.fuse_min_views, len(posed)), max_depth_error=cfg.colmap.fuse_max_depth_error)
         if len(fused.xyz) == 0:
             raise InputError("fusion kept no point: every view contradicts every pair's points (check the poses)")
         staged.require(27 * len(fused.xyz))

@@ -7,6 +7,7 @@ returns a :class:`PairResult`, :func:`write_pair_outputs` writes it, and
 
 from __future__ import annotations
 
+import copy
 import json
 import logging
 import time
@@ -76,13 +77,11 @@ def resolve_cameras(path1, path2, img1, img2, camera: str | None, camera2: str |
             cams.append(cam)
             sources.append(source)
     said = {"given": "given with --camera", "exif": "from the photo's EXIF data",
-            "default": "GUESSED (no --camera, no EXIF): COLMAP's default 1.2 x the longer side"}
+            "default": "to be estimated from the pair (no --camera, no EXIF; COLMAP's guess 1.2 x the longer side)"}
     for i, (cam, src) in enumerate(zip(cams, sources), start=1):
         logger.info("camera %d: focal length %.1f px %s; %s", i, cam.mean_focal_length(), said.get(src, src),
                     camera_to_string(cam))
-    if "default" in sources:
-        logger.warning("the focal length is a guess: the pose and the depths are only right if it is; give "
-                       "--camera \"PINHOLE W H fx fy cx cy\" when the camera is known")
+
     return cams[0], cams[1], sources
 
 
@@ -118,17 +117,8 @@ def reconstruct_pair(
     check_texture(v2.image, names[1])
 
     t0 = time.perf_counter()
-    xy1, xy2 = sift_correspondences(to_gray(v1.image), to_gray(v2.image), cfg.sift.max_features, cfg.sift.max_ratio,
-                                    min_features=cfg.geometry.min_inliers if pose is None else 0,
-                                    names=names, max_size=cfg.sift.max_image_size,
-                                    upsample_max_size=cfg.sift.upsample_max_size)
-    if pose is None:
-        g = cfg.geometry
-        tv = estimate_two_view(xy1, xy2, v1.K, v2.K, v1.size, v2.size, g.min_inliers, g.ransac_max_error,
-                               g.min_tri_angle_deg,
-                               focal_known=camera1.has_prior_focal_length and camera2.has_prior_focal_length)
-    else:
-        tv = with_known_pose(v1.K, v2.K, pose[0], pose[1], xy1, xy2, cfg.geometry.ransac_max_error)
+    tv, v1, v2, two_view_notes = two_view_stage(v1, v2, cfg, pose, names)
+    camera1, camera2 = v1.camera, v2.camera
     timings["two_view"] = time.perf_counter() - t0
 
     dm = _match(v1, v2, tv, cfg, progress)
@@ -138,6 +128,8 @@ def reconstruct_pair(
         t0 = time.perf_counter()
         tv, dm, notes = _check_and_refine_pose(v1, v2, tv, dm, cfg, progress)
         timings["pose_refine"] = time.perf_counter() - t0
+        if "focal" in two_view_notes:
+            _check_unknown_camera(notes["pose_check"], two_view_notes["focal"])
 
     t0 = time.perf_counter()
     from .reconstruct.points import clean_points, estimate_normals, grid_normals, sample_colors
@@ -172,7 +164,7 @@ def reconstruct_pair(
         camera1=camera1, camera2=camera2, R=tv.R, t=tv.t,
         image_size=[[img1.shape[1], img1.shape[0]], [img2.shape[1], img2.shape[0]]],
         counts=counts, timings=timings, view1=v1, view2=v2,
-        notes={"pose": tv.source, **notes},
+        notes={"pose": tv.source, **notes, **two_view_notes},
         sift_uv1=v1.to_original(tv.kp1), sift_uv2=v2.to_original(tv.kp2), image1=img1, image2=img2,
     )
     if cfg.output.mesh:
@@ -180,6 +172,109 @@ def reconstruct_pair(
         result.mesh = _mesh(result, cfg)
         timings["mesh"] = time.perf_counter() - t0
     return result
+
+
+def two_view_stage(v1: WorkingView, v2: WorkingView, cfg: Config, pose: tuple[np.ndarray, np.ndarray] | None = None,
+                   names: tuple[str, str] = ("image 1", "image 2")):
+    """SIFT, and the pose (estimated and checked, or the given one kept).
+
+    Without a prior focal length (no ``--camera``, no EXIF) the focal length is
+    estimated from the pair where it can be (:func:`_estimate_focal`). An estimated
+    pose must explain the independently found fundamental matrix (:func:`_check_geometry`).
+    Returns ``(TwoView, view1, view2, notes)``; the views carry the cameras used.
+    """
+    from .geometry.focal import fundamental_matrix
+
+    g = cfg.geometry
+    xy1, xy2 = sift_correspondences(to_gray(v1.image), to_gray(v2.image), cfg.sift.max_features, cfg.sift.max_ratio,
+                                    min_features=g.min_inliers if pose is None else 0,
+                                    names=names, max_size=cfg.sift.max_image_size,
+                                    upsample_max_size=cfg.sift.upsample_max_size)
+    if pose is not None:
+        return with_known_pose(v1.K, v2.K, pose[0], pose[1], xy1, xy2, g.ransac_max_error), v1, v2, {}
+    notes = {}
+    known = v1.camera.has_prior_focal_length and v2.camera.has_prior_focal_length
+    fit = fundamental_matrix(xy1, xy2, g.ransac_max_error) if len(xy1) >= g.min_inliers else None
+    if not known:
+        v1, v2, notes["focal"] = _estimate_focal(v1, v2, fit, cfg)
+    tv = estimate_two_view(xy1, xy2, v1.K, v2.K, v1.size, v2.size, g.min_inliers, g.ransac_max_error,
+                           g.min_tri_angle_deg, focal_known=known)
+    check = _check_geometry(tv, xy1, xy2, fit, g.ransac_max_error, known)
+    if check:
+        notes["geometry_check"] = check
+    return tv, v1, v2, notes
+
+
+def _estimate_focal(v1: WorkingView, v2: WorkingView, fit: tuple | None, cfg: Config):
+    """The focal length of each camera without a prior, from the pair's fundamental matrix.
+
+    ``fit`` is ``(F, inlier mask)`` of the SIFT matches (:func:`~.geometry.focal.fundamental_matrix`).
+    Returns the two views (with new cameras where the focal length was estimated)
+    and a note for the report. Where the pair does not determine it, the guess stays.
+    """
+    from .geometry.focal import estimate_focal
+    from .geometry.undistort import pinhole_matrix
+
+    note = {"fundamental_inliers": 0 if fit is None else int(fit[1].sum()), "source": "default"}
+    if fit is None or fit[1].sum() < cfg.geometry.min_inliers:
+        return v1, v2, note  # too few matches: estimate_two_view says so
+    est = estimate_focal(fit[0], v1.size, v2.size, num_inliers=int(fit[1].sum()),
+                         K1=v1.K if v1.camera.has_prior_focal_length else None,
+                         K2=v2.K if v2.camera.has_prior_focal_length else None)
+    note.update(factor=round(est.factor, 4), cost=float(f"{est.cost:.3g}"), cost_rise=float(f"{est.rise:.3g}"),
+                determined=est.determined)
+    if not est.determined:
+        logger.warning(
+            "the focal length cannot be estimated from this pair (its optical axes are parallel, or both cameras "
+            "turned towards one point alike), so the "
+            "guess of %.2f x the longer side stays: the matches do not depend on it, the depths' scale does; give "
+            "--camera when the camera is known", v1.K[0, 0] / max(v1.size))
+        return v1, v2, note
+    views = []
+    for v in (v1, v2):
+        if v.camera.has_prior_focal_length:
+            views.append(v)
+            continue
+        cam = copy.copy(v.camera)
+        w, h = cam.width, cam.height
+        cam.focal_length = est.factor * max(w, h)  # one focal length: COLMAP's SIMPLE_RADIAL guess
+        views.append(WorkingView(v.image, pinhole_matrix(cam, v.scale), cam, v.scale))
+    note["source"] = "estimated"
+    logger.info("focal length estimated from the pair: %.1f px (%.2f x the longer side; %d matches fit its "
+                "fundamental matrix)", views[0].camera.mean_focal_length(), est.factor, note["fundamental_inliers"])
+    return views[0], views[1], note
+
+
+#: A pose is accepted when it explains at least this share of the inliers of the
+#: fundamental matrix found independently (RANSAC on the same SIFT matches, without
+#: the cameras) within the RANSAC threshold. A right pose explains them all but a
+#: few borderline ones (an essential matrix has two degrees of freedom fewer; 0.86-1.0
+#: on the real pairs even with a guessed camera); where the two models pick different
+#: matches (3 % on a ScanNet pair whose pose was 84 deg off), neither is to be trusted.
+MIN_EXPLAINED_SHARE = 0.8
+
+
+def _check_geometry(tv, xy1: np.ndarray, xy2: np.ndarray, fit: tuple | None, max_error: float,
+                    camera_known: bool) -> dict:
+    """Refuse a pose that does not explain the matches of the independently found fundamental matrix."""
+    from .geometry.two_view import epipolar_distances
+
+    if fit is None or not fit[1].any():
+        return {}
+    inl = fit[1]
+    share = float(np.mean(epipolar_distances(tv.F, xy1[inl], xy2[inl]) < max_error))
+    note = {"fundamental_inliers": int(inl.sum()), "pose_inliers": int(len(tv.kp1)), "explained_share": round(share, 4)}
+    logger.debug("geometry check: the pose explains %.0f %% of the %d inliers of the fundamental matrix",
+                 100 * share, inl.sum())
+    if share >= MIN_EXPLAINED_SHARE:
+        return note
+    seen = (f"the relative pose ({len(tv.kp1)} SIFT inliers) explains only {100 * share:.0f} % of the {int(inl.sum())} "
+            f"matches that fit the pair's fundamental matrix (at least {100 * MIN_EXPLAINED_SHARE:.0f} % are needed)")
+    if camera_known:
+        raise InputError(f"the geometry of the pair is ambiguous: {seen}; two different geometries fit the matches, so "
+                         "the pose cannot be trusted (too few distinctive matches: try photos closer together)")
+    raise InputError(f"the focal length could not be found: with {tv.K1[0, 0]:.0f} px {seen}; give the camera "
+                     "with --camera \"PINHOLE W H fx fy cx cy\"")
 
 
 def _match(v1: WorkingView, v2: WorkingView, tv, cfg: Config, progress: bool) -> DenseMatches:
@@ -229,6 +324,30 @@ def _check_and_refine_pose(v1: WorkingView, v2: WorkingView, tv, dm: DenseMatche
         tv = new
         dm = _match(v1, v2, tv, cfg, progress)
     return tv, dm, notes
+
+
+#: Without a known camera, a pose is refused when the free dense tracks lie a median
+#: more than this (px) from its epipolar lines: matches are judged at 1 px, and lines
+#: half a pixel off put a large share of them past it (the real pairs whose images were
+#: turned, so their principal points are far off the centre a guess assumes, lost
+#: 0.2-0.5 of their precision at 1 px beyond this), while a right camera leaves the
+#: tracks' own noise (0.1-0.3 px on fountain-P11 with the focal length estimated).
+MAX_UNKNOWN_CAMERA_TRACK_PX = 0.5
+
+
+def _check_unknown_camera(check: dict, focal: dict) -> None:
+    """Refuse the pose of a guessed or estimated camera that the dense tracks do not bear out."""
+    px = check.get("refined_pose_epipolar_px") if "refined_change_deg" in check else check.get("sift_pose_epipolar_px")
+    if px is None or not np.isfinite(px):
+        return
+    focal["track_epipolar_px"] = px
+    if px > MAX_UNKNOWN_CAMERA_TRACK_PX:
+        what = "estimated from the pair" if focal.get("source") == "estimated" else "guessed"
+        raise InputError(
+            f"the camera is unknown and the pose made with the focal length {what} leaves the dense matches, "
+            f"tracked freely, a median {px:.2f} px from its epipolar lines (at most {MAX_UNKNOWN_CAMERA_TRACK_PX:g} "
+            "px is needed): the geometry is not reliable without the camera; give it with --camera "
+            "\"PINHOLE W H fx fy cx cy\"")
 
 
 def _mesh(result: PairResult, cfg: Config):
@@ -335,9 +454,14 @@ def run_pair(
     with staged as stage:
         staged.require(pair_output_bytes(result, cfg))
         report = write_pair_outputs(result, cfg, stage, (Path(image1).name, Path(image2).name))
+        focal = result.notes.get("focal", {})
+        if focal.get("source") == "estimated":
+            sources = ["estimated" if s == "default" else s for s in sources]
         report["camera_sources"] = sources
         report["focal_length"] = [{"px": round(float(c.mean_focal_length()), 3), "source": src}
-                                  for c, src in zip((cam1, cam2), sources)]
+                                  for c, src in zip((result.camera1, result.camera2), sources)]
+        if focal:
+            report["focal_estimation"] = focal
         report["timings_s"]["total"] = round(time.perf_counter() - t0, 4)
         (stage / "report.json").write_text(json.dumps(report, indent=2))
     return report

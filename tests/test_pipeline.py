@@ -119,6 +119,9 @@ def _off_pose(monkeypatch, rotvec_deg, t_dir=None):
         return tv
 
     monkeypatch.setattr(pipeline, "estimate_two_view", wrong)
+    # No RANSAC returns a pose that leaves its own inliers off its lines, which the check
+    # against the fundamental matrix refuses: here the dense stage's refinement is tested.
+    monkeypatch.setattr(pipeline, "_check_geometry", lambda *args, **kwargs: {})
 
 
 def _pose_error_deg(res, v1, v2):
@@ -142,8 +145,8 @@ def test_a_slightly_wrong_sift_pose_is_refined_with_the_dense_matches(small_scen
     assert _pose_error_deg(raw, v1, v2) > 0.3
 
 
-def test_a_guessed_focal_length_is_said_at_the_default_verbosity(tmp_path, small_scene, caplog):
-    """No --camera, no EXIF: COLMAP's default focal length, named a guess in a warning, never silently."""
+def test_a_focal_length_without_prior_is_said_at_the_default_verbosity(tmp_path, small_scene, caplog):
+    """No --camera, no EXIF: the log says the focal length will be estimated, never silently guessed."""
     import cv2
 
     from sefm_recon.pipeline import resolve_cameras
@@ -154,5 +157,4 @@ def test_a_guessed_focal_length_is_said_at_the_default_verbosity(tmp_path, small
     with caplog.at_level("INFO"):
         c1, _, sources = resolve_cameras(path, path, img, img, None, None)
     assert sources == ["default", "default"] and c1.mean_focal_length() == 1.2 * 320
-    assert "camera 1: focal length 384.0 px GUESSED (no --camera, no EXIF)" in caplog.text
-    assert any(r.levelname == "WARNING" and "the focal length is a guess" in r.message for r in caplog.records)
+    assert "camera 1: focal length 384.0 px to be estimated from the pair (no --camera, no EXIF" in caplog.text
