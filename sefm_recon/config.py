@@ -341,8 +341,8 @@ class ColmapConfig:
            "contradict; at 2 also a pair's point no other view confirms, where none contradicts or hides it",
         unit="views", range=Range(2, 1000),
         why="a pair's own two views confirm nothing: 3 asks for one other view, a three-view track (COLMAP's "
-            "fusion asks for 5 depth maps); at 2 points only one pair sees stay; past the number of views "
-            "nothing is kept")
+            "fusion asks for 5 depth maps); at 2 points only one pair sees stay; more than the workspace's "
+            "views asks for all of them")
     fuse_max_depth_error: float = _setting(
         0.01, "fused.ply: relative depth difference within which a view's observation agrees with a point (and "
               "beyond which a surface seen behind it contradicts it)", unit="of the depth",

@@ -81,10 +81,19 @@ def test_a_point_only_one_pair_sees_is_kept_when_no_view_contradicts_it():
     # views 2 and 3 took part in no pair: they have no depth, and no partner of theirs saw anything
     f = _fuse(views, [(0, 1)], [_cloud(plane)], min_views=2)
     assert f.stats["kept"] == len(plane) and f.stats["kept_unconfirmed"] == len(plane)
+    f = _fuse(views, [(0, 1)], [_cloud(plane)], min_views=3)
+    assert f.stats["kept"] == len(plane) and f.stats["kept_unconfirmed"] == len(plane)
     assert np.all(f.support <= 2)  # its own views (one where the point leaves view 1's image)
-    # by default a point needs a third view
+    # by default a point needs a third view, where a third view has depth
+    other = _plane_points(views[2])
+    other = other[other[:, 0] > 3.0]  # pair (2, 3) saw only a strip far to the right
+    g = _fuse(views, [(0, 1), (2, 3)], [_cloud(plane), _cloud(other)])
+    assert g.stats["kept"] == 0 and g.stats["dropped_unconfirmed"] + g.stats["dropped_background"] >= len(plane)
+    # ... unless the workspace has no third view, or no other pair gives one a depth map to agree with
+    h = _fuse(views[:2], [(0, 1)], [_cloud(plane)])
+    assert h.stats["kept"] == len(plane)
     g = _fuse(views, [(0, 1)], [_cloud(plane)])
-    assert g.stats["kept"] == 0 and g.stats["dropped_unconfirmed"] == len(plane)
+    assert g.stats["kept"] == len(plane)
 
 
 def test_a_point_one_pair_sees_and_another_view_would_see_in_front_of_it_is_dropped():

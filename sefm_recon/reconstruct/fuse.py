@@ -157,6 +157,7 @@ def fuse_pairs(
             ``(xyz (n, 3), rgb (n, 3) uint8, normals (n, 3) or None)``; called twice per pair.
         min_views: views (the pair's two included) that must agree with a point (at least 3: one other
             view); 2 keeps a pair's point that no other view agrees with where no view contradicts or hides it.
+            At most the number of views that take part in a pair counts (one pair: its points stay).
         max_depth_error: relative depth difference within which two observations agree.
 
     Returns:
@@ -213,7 +214,10 @@ def fuse_pairs(
     track = np.zeros((0, words), np.uint64)
     n_fused = np.zeros(1, np.int64)
     counts = np.zeros(7, np.int64)
-    min_agree = max(0, int(min_views) - 2)
+    # only views in a pair have depth to agree with: with fewer of them than min_views, all of them are asked
+    # (a workspace of two views, or --pairs naming one pair: its points, where no view contradicts them)
+    paired = int(np.sum(adj.any(1)))
+    min_agree = max(0, min(int(min_views), paired) - 2)
     for k, (a, b) in enumerate(pairs):
         for xyz, rgb, nrm in _blocks(read_blocks, k):
             need = int(n_fused[0]) + len(xyz)
