@@ -504,10 +504,12 @@ def _init_worker(threads: int, level: int) -> None:
     _limit_threads(threads)
 
 
-def _run_local(tasks: list[PairTask], workers: int) -> Iterator[dict]:
+def _run_local(tasks: list, workers: int, fn=None) -> Iterator:
+    """``fn(task)`` (default :func:`run_pair_task`) for each task, inline or in a process pool, as they finish."""
+    fn = fn or run_pair_task
     if workers <= 1 or len(tasks) <= 1:
         for t in tasks:
-            yield run_pair_task(t)
+            yield fn(t)
         return
     import multiprocessing as mp
     from concurrent.futures import ProcessPoolExecutor, as_completed
@@ -523,9 +525,13 @@ def _run_local(tasks: list[PairTask], workers: int) -> Iterator[dict]:
                              initargs=(threads, logging.getLogger().level))
     finished = False
     try:
-        futures = [ex.submit(run_pair_task, t) for t in tasks]
-        for f in as_completed(futures):
+        # A finished future keeps its result (a pair's arrays, tens of MB) while anything refers to it:
+        # each one is let go as soon as it is read, or the run holds every pair's arrays to the end.
+        pending = {ex.submit(fn, t) for t in tasks}
+        for f in as_completed(pending):
+            pending.discard(f)
             yield f.result()
+            del f
         finished = True
     finally:
         if not finished:  # an error, Ctrl-C or SIGTERM: stop the running pairs now, not after they finish
@@ -546,12 +552,14 @@ def _run_dask(tasks: list[PairTask], address: str) -> Iterator[dict]:
         raise InputError(f"cannot connect to the Dask scheduler at {address}: {err}".splitlines()[0]) from None
     try:
         logger.info("Dask: %d workers at %s", len(client.scheduler_info().get("workers", {})), address)
-        futures = client.map(run_pair_task, tasks, pure=False)
+        pending = set(client.map(run_pair_task, tasks, pure=False))
         try:
-            for fut in as_completed(futures):
+            for fut in as_completed(pending):
+                pending.discard(fut)  # let go of each result as soon as it is read (see _run_local)
                 yield fut.result()
+                del fut
         finally:
-            client.cancel(futures)
+            client.cancel(list(pending))
     finally:
         client.close()
 
