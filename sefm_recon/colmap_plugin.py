@@ -455,9 +455,12 @@ def run_pair_task(task: PairTask) -> dict:
         res = reconstruct_pair(img1, img2, task.camera1, task.camera2, cfg, pose=(R, t), progress=False,
                                names=(task.name1, task.name2))
     except (InputError, ValueError) as err:
-        return {**base, "status": "skipped", "reason": str(err).splitlines()[0] if str(err) else type(err).__name__}
+        # a skipped pair's time is reported too: on weakly textured sets it can be most of the run's
+        return {**base, "status": "skipped", "reason": str(err).splitlines()[0] if str(err) else type(err).__name__,
+                "timings": {"total": round(time.perf_counter() - t0, 4)}}
     C2 = -R.T @ t  # camera 2's centre in camera 1's frame
     angle = median_angle_deg(np.zeros(3), C2, res.xyz)
+    base["timings"] = {"total": round(time.perf_counter() - t0, 4)}
     if len(res.xyz) == 0:
         return {**base, "status": "skipped", "reason": "no matches", "counts": res.counts}
     if not angle >= cfg.geometry.min_tri_angle_deg:
@@ -603,7 +606,8 @@ def _collect(r: dict, states: list[_PairState], staged, results: dict[int, dict]
         raise InputError(r["message"])
     st = states[r["index"]]
     if r["status"] == "skipped":
-        st.entry.update(status="skipped", reason=r["reason"], counts=r.get("counts", {}))
+        st.entry.update(status="skipped", reason=r["reason"], counts=r.get("counts", {}),
+                        timings_s=r.get("timings", {}))
         logger.warning("skipping %s %s: %s", *st.entry["images"], r["reason"])
         return
     staged.require(len(r["uv1"]) * (20 + 27))  # matches.npz (at most), points.ply

@@ -19,12 +19,14 @@ import pytest
 
 from sefm_recon.colmap_plugin import (
     COLMAP_RESULTS,
+    PairTask,
     _run_local,
     open_workspace,
     pair_folder_name,
     read_pairs_file,
     read_workspace_image,
     run_colmap,
+    run_pair_task,
     select_pairs,
 )
 from sefm_recon.config import load_config
@@ -281,6 +283,18 @@ def test_workspace_from_pycolmap_sfm(small_scene3, tmp_path):
     assert _accuracy(s * xyz @ R.T + t, small_scene3, share=0.03) >= 0.9
     sparse = pycolmap.Reconstruction(str(tmp_path / "out" / "sparse"))
     assert sparse.num_points3D() > 3000 and sparse.compute_mean_reprojection_error() < 1.0
+
+
+def test_a_pair_skipped_at_matching_reports_its_time():
+    """A pair that fails in matching (here: a blank photo) is skipped with its reason and its time
+    (on a weakly textured set such pairs can take most of the run)."""
+    blank = cv2.imencode(".png", np.full((120, 160, 3), 128, np.uint8))[1].tobytes()
+    cam = pycolmap.Camera(model="PINHOLE", width=160, height=120, params=[150.0, 150.0, 80.0, 60.0])
+    task = PairTask(0, "a.png", "b.png", blank, blank, cam, cam, np.eye(3), np.zeros(3), np.eye(3),
+                    np.array([-1.0, 0.0, 0.0]), load_config(None))
+    r = run_pair_task(task)
+    assert r["status"] == "skipped" and "texture" in r["reason"]
+    assert r["timings"]["total"] > 0
 
 
 def test_process_pool_lets_go_of_each_result():
