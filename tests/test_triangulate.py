@@ -3,6 +3,7 @@ import numpy as np
 import pytest
 
 from sefm_recon.geometry.triangulate import project, reprojection_errors, triangulate
+from sefm_recon.geometry.two_view import match_descriptors
 
 from .conftest import rot_y
 
@@ -62,3 +63,15 @@ def test_a_narrow_baseline_is_a_warning_a_pure_rotation_is_refused(caplog):
     b = b + np.random.default_rng(1).normal(0, 0.3, b.shape)  # SIFT's localisation noise
     with pytest.raises(InputError, match=r"no baseline.*pure rotation of the camera \(by 3\.0 deg\)"):
         estimate_two_view(a, b, K, K, (640, 480), (640, 480))
+
+
+def test_sift_matching_does_not_depend_on_what_ran_before():
+    """FLANN's randomised trees draw from OpenCV's RNG: the matches of one pair of descriptor
+    sets must be the same whatever else used that RNG in between."""
+    rng = np.random.default_rng(0)
+    d1 = rng.random((2000, 128), np.float32)
+    d2 = np.clip(d1 + rng.normal(0, 0.35, d1.shape), 0, 1).astype(np.float32)  # ambiguous enough to vary
+    first = match_descriptors(d1, d2)
+    cv2.randu(np.zeros((100, 100), np.float32), 0, 1)  # another user of OpenCV's RNG
+    again = match_descriptors(d1, d2)
+    assert len(first) > 500 and np.array_equal(first, again)
