@@ -145,6 +145,32 @@ def test_a_slightly_wrong_sift_pose_is_refined_with_the_dense_matches(small_scen
     assert _pose_error_deg(raw, v1, v2) > 0.3
 
 
+def test_tracks_of_a_failed_tracker_refine_nothing(small_scene, monkeypatch):
+    """Where few of the tried matches track (a zoom the tracker does not model), the tracks do
+    not move the pose: the same 0.4 deg off pose as above stays, since its tracks are not trusted."""
+    import dataclasses
+
+    import sefm_recon.geometry.refine as refine
+    from sefm_recon.pipeline import MIN_TRACKED_SHARE
+
+    real = refine.track_dense
+
+    def few(*args, **kwargs):  # the same tracks, said to be a small share of those tried
+        tr = real(*args, **kwargs)
+        return dataclasses.replace(tr, tried=int(len(tr.uv1) / (0.9 * MIN_TRACKED_SHARE)))
+
+    monkeypatch.setattr(refine, "track_dense", few)
+    v1, v2 = small_scene.views
+    _off_pose(monkeypatch, [0.4, 0.0, 0.0])
+    cfg = load_config(None, ["output.mesh=false"], internal=True)
+    cams = [v1.camera(1), v2.camera(2)]
+    for c in cams:  # a known camera: the unknown-camera check would refuse the pose instead
+        c.has_prior_focal_length = True
+    res = reconstruct_pair(v1.image, v2.image, *cams, cfg)
+    assert res.notes["pose_check"]["sift_pose_epipolar_px"] > 0.3  # off, and it would be refined if trusted
+    assert res.notes["pose"] == "estimated" and _pose_error_deg(res, v1, v2) > 0.3
+
+
 def test_a_focal_length_without_prior_is_said_at_the_default_verbosity(tmp_path, small_scene, caplog):
     """No --camera, no EXIF: the log says the focal length will be estimated, never silently guessed."""
     import cv2
