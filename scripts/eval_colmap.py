@@ -80,6 +80,8 @@ def fountain_workspace(src: Path, dst: Path, n: int, scale: float) -> None:
 def dino_workspace(src: Path, dst: Path) -> None:
     import shutil
 
+    import cv2
+
     (dst / "images").mkdir(parents=True, exist_ok=True)
     entries = []
     for line in (src / "dinoSR_par.txt").read_text().splitlines()[1:]:
@@ -91,8 +93,6 @@ def dino_workspace(src: Path, dst: Path) -> None:
         K[0, 2] += 0.5
         K[1, 2] += 0.5
         shutil.copy(src / f[0], dst / "images" / f[0])
-        import cv2
-
         h, w = cv2.imread(str(src / f[0])).shape[:2]
         entries.append((f[0], K, v[9:18].reshape(3, 3), v[18:21], w, h))
     _write_model(dst, entries)

@@ -28,6 +28,7 @@ import numpy as np
 
 from sefm_recon.config import load_config
 from sefm_recon.errors import InputError
+from sefm_recon.geometry.refine import pose_change_deg
 from sefm_recon.geometry.two_view import TwoView, epipolar_distances
 from sefm_recon.io.cameras import default_camera, read_strecha_camera
 from sefm_recon.io.images import read_image
@@ -53,10 +54,6 @@ def fountain_cases(folder: Path):
         yield f"fountain {names[i][:4]}-{names[i + 1][:4]}", imgs[0], imgs[1], K, R, t2 - R @ t1
 
 
-def angle(R) -> float:
-    return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1))))
-
-
 def run(name, img1, img2, K1, K2, R, t, cfg, case=None) -> dict:
     row = {"pair": name}
     h1, w1 = img1.shape[:2]
@@ -66,11 +63,12 @@ def run(name, img1, img2, K1, K2, R, t, cfg, case=None) -> dict:
     except InputError as err:
         row["refused"] = str(err)
         return row
-    t = t / np.linalg.norm(t)
     focal = res.notes.get("focal", {})
-    d = epipolar_distances(TwoView(K1, K2, R, t).F, res.uv1, res.uv2)
+    true = TwoView(K1, K2, R, t)
+    d = epipolar_distances(true.F, res.uv1, res.uv2)
+    rot_err, tdir_err = pose_change_deg(true, TwoView(K1, K2, res.R, res.t))
     row.update(source=focal.get("source", "default"), focal_error=res.camera1.mean_focal_length() / K1[0, 0] - 1,
-               rot_err=angle(res.R @ R.T), tdir_err=float(np.degrees(np.arccos(np.clip(res.t @ t, -1, 1)))),
+               rot_err=rot_err, tdir_err=tdir_err,
                matches=len(res.uv1), median_line_px=float(np.median(d)) if len(d) else float("nan"),
                explained=res.notes.get("geometry_check", {}).get("explained_share"),
                pose_check=res.notes.get("pose_check"))

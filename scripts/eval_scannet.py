@@ -21,6 +21,7 @@ import numpy as np
 
 from sefm_recon.config import load_config
 from sefm_recon.errors import InputError
+from sefm_recon.geometry.refine import pose_change_deg
 from sefm_recon.geometry.two_view import TwoView, epipolar_distances
 from sefm_recon.geometry.undistort import make_working_view
 from sefm_recon.io.cameras import pinhole_camera
@@ -43,10 +44,6 @@ def read_pairs(folder: Path):
             K[0, 2] += 0.5
             K[1, 2] += 0.5
         yield f[0], f[1], K0, K1, T[:3, :3], T[:3, 3]
-
-
-def angle_deg(R):
-    return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1))))
 
 
 def two_view_only(img0, img1, cam0, cam1, cfg):
@@ -81,9 +78,7 @@ def main():
                 row["error"] = str(err)
                 print(f"{n0[:22]:22s} {n1[-10:]:10s}  failed: {err}")
             else:
-                row["rot_err_deg"] = angle_deg(R.T @ tv.R)
-                cos = float(t @ tv.t / np.linalg.norm(t) / np.linalg.norm(tv.t))
-                row["trans_err_deg"] = float(np.degrees(np.arccos(np.clip(cos, -1, 1))))
+                row["rot_err_deg"], row["trans_err_deg"] = pose_change_deg(TwoView(K0, K1, R, t), tv)
                 row["sift_inliers"] = int(len(tv.kp1))
                 print(f"{n0[:22]:22s} {n1[-10:]:10s}  R {row['rot_err_deg']:6.2f} deg  t {row['trans_err_deg']:6.2f} deg"
                       f"  {row['sift_inliers']} inliers of {tv.num_sift_matches}")
@@ -96,10 +91,9 @@ def main():
             rows.append(row)
             print(f"{n0[:22]:22s} {n1[-10:]:10s}  failed: {err}")
             continue
-        row["rot_err_deg"] = angle_deg(R.T @ res.R)
-        cos = float(t @ res.t / np.linalg.norm(t) / np.linalg.norm(res.t))
-        row["trans_err_deg"] = float(np.degrees(np.arccos(np.clip(cos, -1, 1))))
-        F = TwoView(K0, K1, R, t).F
+        true = TwoView(K0, K1, R, t)
+        row["rot_err_deg"], row["trans_err_deg"] = pose_change_deg(true, TwoView(K0, K1, res.R, res.t))
+        F = true.F
         d = epipolar_distances(F, res.uv1, res.uv2)
         row.update(matches=int(len(d)), epi_median_px=float(np.median(d)) if len(d) else None,
                    epi_within_1px=float(np.mean(d <= 1)) if len(d) else None,

@@ -155,7 +155,6 @@ def fuse_block(a, b, pix, z, xyz, rgb, nrm, nq, depth, nmap, near, offs, widths,
     """
     V = pix.shape[0]
     n = pix.shape[1]
-    words = track.shape[1]
     inview = np.zeros(V, np.bool_)
     for k in range(n):
         agree = 0
@@ -190,7 +189,7 @@ def fuse_block(a, b, pix, z, xyz, rgb, nrm, nq, depth, nmap, near, offs, widths,
                 for m in range(V):
                     if adj[j, m] and pix[m, k] >= 0:
                         pm = pix[m, k]
-                        ok2, wmin2 = _window(depth, nmap, offs[m], widths[m], heights[m], pm, z[m, k], nq[k],
+                        _, wmin2 = _window(depth, nmap, offs[m], widths[m], heights[m], pm, z[m, k], nq[k],
                                              tol, -2.0, r)
                         if not (wmin2 < z[m, k] * (1.0 - tol)):  # not hidden in the partner view
                             contra += 1
@@ -242,4 +241,3 @@ def fuse_block(a, b, pix, z, xyz, rgb, nrm, nq, depth, nmap, near, offs, widths,
             if owner[q] < 0:
                 owner[q] = fid
                 fdepth[q] = z[j, k]
-    return words
