@@ -241,6 +241,7 @@ class SgmConfig:
     speckle: bool = True  #: drop small islands of disparity (OpenCV's speckle filter)
     sift_range: bool = True  #: search the SIFT inliers' parallax (false: their depths x2 and /2)
     range_margin: float = 0.25  #: the parallax range widened by this share of its span on each side
+    end_check: bool = True  #: drop estimates within a column of the ends of the search (its edge, not a minimum found)
     bicubic: bool = True  #: bicubic line images (false: bilinear)
     interpolate: bool = True  #: read disparities back interpolated over the surface (false: nearest cell)
 

@@ -248,3 +248,33 @@ def test_sgm_matches_forward_motion_where_no_planar_rectification_exists():
     res = reconstruct_pair(v1.image, v2.image, v1.camera(1), v2.camera(2), cfg, pose=pose)
     m = evaluate_matches(res.uv1, res.uv2, v1, v2)
     assert m["precision@3"] > 0.65 and m["coverage@3"] > 0.6  # measured 0.73 / 0.70 (one match a pixel)
+
+
+def test_sgm_drops_estimates_at_the_edge_of_its_search():
+    # A smooth texture shifted by 10 px, while the SIFT inliers say 30 px: the true
+    # parallax lies below the searched range, the cost falls all the way to the search's
+    # first column, and OpenCV reports that edge as the disparity. Those estimates are
+    # not minima found and are dropped; measured: 62,140 matches at the edge without the
+    # check, 4,468 with it.
+    import cv2
+
+    from sefm_recon.matching.sgm import match_pair_sgm
+
+    rng = np.random.default_rng(5)
+    w, h = 320, 240
+    tex = cv2.GaussianBlur(rng.uniform(0, 255, (h, w + 40)).astype(np.float32), (0, 0), 6)
+    tex = cv2.normalize(tex, None, 20, 235, cv2.NORM_MINMAX)
+    to_rgb = lambda g: np.repeat(np.clip(g, 0, 255).astype(np.uint8)[..., None], 3, axis=2)
+    x = np.arange(w)
+    img1, img2 = to_rgb(tex[:, x + 20]), to_rgb(tex[:, x + 30])  # x2 = x1 - 10
+    kx, ky = np.meshgrid(np.arange(40, 300, 20) + 0.5, np.arange(20, 220, 20) + 0.5)
+    kp1 = np.column_stack([kx.ravel(), ky.ravel()])
+    base = _two_view(np.eye(3), [-1.0, 0, 0])
+    tv = TwoView(base.K1, base.K2, base.R, base.t, kp1, kp1 - [30.0, 0], len(kp1))
+    found = {}
+    for check in (False, True):
+        res = match_pair_sgm(img1, img2, tv, load_config(None, [f"sgm.end_check={str(check).lower()}"], internal=True))
+        found[check] = res.uv1[:, 0] - res.uv2[:, 0]
+    edge = found[False]
+    assert len(edge) > 0.6 * w * h and 10.5 < np.median(edge) < 20  # at the edge: neither 10 nor 30
+    assert len(found[True]) < 0.1 * len(edge)

@@ -34,7 +34,7 @@ from .sefm import DenseMatches, depth_range
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["match_pair_sgm", "parallax_columns", "pixel_matches"]
+__all__ = ["drop_range_ends", "match_pair_sgm", "parallax_columns", "pixel_matches", "search_range"]
 
 #: StereoSGBM's settings, those of the evaluation's planar SGBM peer: 5x5 blocks, OpenCV's
 #: recommended smoothness penalties P1 = 8 C B^2 and P2 = 32 C B^2 (C channels), a speckle
@@ -52,11 +52,19 @@ LR_MAX_DIFF = 1
 MAX_FULL_VOLUME = 250_000_000
 #: The parallax range is widened by ``cfg.sgm.range_margin`` of its span on each side
 #: (surfaces nearer or farther than every SIFT point), and by at least this many columns,
-#: the evaluation's SGBM peer's margin of 8 px; then by as many again, since OpenCV's
-#: estimates at the ends of its range are poor. Without the quarter span, the generated
-#: scenes gained 0.01-0.03 at 1 px (a narrower search in noise), but three real pairs
-#: lost 0.03-0.08 of coverage (Wood2, Lampshade2: surfaces beyond the SIFT points).
+#: the evaluation's SGBM peer's margin of 8 px. Without the quarter span, Lampshade2
+#: loses 0.023-0.029 of coverage (a surface beyond every SIFT point); the means move by
+#: 0.001.
 MARGIN_COLUMNS = 8
+#: The search then goes this many columns further at each end (OpenCV's estimates at the
+#: ends of its range are poor), and one more: an estimate within one column of either end
+#: of the search (``cfg.sgm.end_check``) is dropped. Its cost has no neighbour beyond it,
+#: so its minimum is the edge of the search, not a minimum found; and it is where OpenCV
+#: breaks the ties of a plain surface (the first disparity of the search wins: the plain
+#: walls of Midd2 and Monopoly, 40 % of their matches, lay there, up to 8 px from their
+#: true depth). Measured at 1 px: real pairs +0.025 precision, -0.004 coverage (Midd1's
+#: plain wall had lain at the end of its search); generated +0.047 / -0.002.
+END_COLUMNS = 8
 #: SIFT depth ranges are sampled over image 1 on a grid this coarse (px).
 _GRID_PX = 8.0
 #: Neighbouring disparities within this many columns of the nearest cell's are on its
@@ -93,8 +101,8 @@ def search_range(tv: TwoView, grid: LineGrid, size1: tuple[int, int], margin: fl
     """(lo, hi) columns of parallax to search: the SIFT inliers' own column differences
     (1st-99th percentile), widened on each side by ``margin`` of their span and at least
     :data:`MARGIN_COLUMNS`. With fewer than 8 inliers, all scene points from a fifth of
-    the baseline to infinity. Every range is then widened by :data:`MARGIN_COLUMNS` more
-    for OpenCV's poor estimates at the ends of its range.
+    the baseline to infinity. Every range is then widened by :data:`END_COLUMNS` and one
+    column more (whose estimates are dropped, :func:`drop_range_ends`).
 
     A margin in parallax rather than in depth (``sift_parallax=False``: the parallax of
     the SIFT points' depths, halved and doubled): the depth margin widens the search 2-4
@@ -111,7 +119,15 @@ def search_range(tv: TwoView, grid: LineGrid, size1: tuple[int, int], margin: fl
         lo, hi = np.percentile(d, [1, 99])
         m = max(MARGIN_COLUMNS, margin * (hi - lo))
         lo, hi = lo - m, hi + m
-    return float(lo - MARGIN_COLUMNS), float(hi + MARGIN_COLUMNS)
+    return float(lo - END_COLUMNS - 1), float(hi + END_COLUMNS + 1)
+
+
+def drop_range_ends(disp: np.ndarray, lo: int, hi: int, invalid: float) -> int:
+    """Set the disparities within one column of either end of the searched columns
+    ``lo..hi`` to ``invalid``, in place; returns how many."""
+    ends = (disp > invalid) & ((disp < lo + 1) | (disp > hi - 1))
+    disp[ends] = invalid
+    return int(np.count_nonzero(ends))
 
 
 class GridScalars(NamedTuple):
@@ -287,6 +303,7 @@ def match_pair_sgm(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config,
                                  mode=cv2.STEREO_SGBM_MODE_HH if full else cv2.STEREO_SGBM_MODE_SGBM_3WAY)
     disp = sgbm.compute(L1, L2).astype(np.float32) / 16.0 + min_d  # fixed point, 4 fractional bits; invalid: -1
     del L1, L2
+    n_ends = drop_range_ends(disp, min_d, min_d + num_d - 1, min_d - 1.0) if opt.end_check else 0
     n_dense = int(np.count_nonzero(disp >= min_d))
     uv1, uv2, rows = pixel_matches(disp, min_d, grid, tv, size1, size2, opt.interpolate)
     del disp
@@ -300,6 +317,6 @@ def match_pair_sgm(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config,
         "dense_matches": n_dense,
         "valid_matches": int(len(keep)),
     }
-    logger.info("SGM (%s): %d line pairs, %d dense, %d valid", "8 paths" if full else "3 directions",
-                counts["line_pairs"], n_dense, len(keep))
+    logger.info("SGM (%s): %d line pairs, %d dense (%d more at the ends of the search dropped), %d valid",
+                "8 paths" if full else "3 directions", counts["line_pairs"], n_dense, n_ends, len(keep))
     return DenseMatches(uv1[keep], uv2[keep], np.ones(len(keep)), rows[keep], X[keep], counts, timings)
