@@ -278,3 +278,25 @@ def test_sgm_drops_estimates_at_the_edge_of_its_search():
     edge = found[False]
     assert len(edge) > 0.6 * w * h and 10.5 < np.median(edge) < 20  # at the edge: neither 10 nor 30
     assert len(found[True]) < 0.1 * len(edge)
+
+
+def test_a_coarse_pass_bounds_the_search_where_sift_gives_no_range():
+    # No SIFT inliers: the search would span every parallax from a fifth of the
+    # baseline to infinity (about 1050 columns here). The coarse pass at half size finds
+    # the two surfaces (10 and 30 px, 12.5 and 37.5 columns) and the search spans them.
+    from sefm_recon.matching.lines import line_grid
+    from sefm_recon.matching.sgm import MARGIN_COLUMNS, coarse_range, match_pair_sgm, search_range
+
+    img1, img2, tv, d = _lateral_pair()
+    bare = TwoView(tv.K1, tv.K2, tv.R, tv.t)
+    cfg = load_config(None, [])
+    grid = line_grid(bare, (320, 240), (320, 240))
+    lo, hi = search_range(bare, grid, (320, 240))
+    assert hi - lo > 500
+    found = coarse_range(img1, img2, bare, grid, cfg, lo, hi)
+    # within the margin the search adds to it (MARGIN_COLUMNS): 36.1 at the 99.5th percentile
+    assert found is not None and found[0] < 12.5 and found[1] + MARGIN_COLUMNS > 37.5 and found[1] - found[0] < 60
+    res = match_pair_sgm(img1, img2, bare, cfg)
+    ij, truth, err = _disparity_errors(res, d)
+    seen = np.isfinite(truth)
+    assert np.mean(err[seen] < 1.0) > 0.95 and seen.sum() > 0.85 * np.isfinite(d).sum()

@@ -34,7 +34,7 @@ from .sefm import DenseMatches, depth_range
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["drop_range_ends", "match_pair_sgm", "parallax_columns", "pixel_matches", "search_range"]
+__all__ = ["coarse_range", "drop_range_ends", "match_pair_sgm", "parallax_columns", "pixel_matches", "search_range"]
 
 #: StereoSGBM's settings, those of the evaluation's planar SGBM peer: 5x5 blocks, OpenCV's
 #: recommended smoothness penalties P1 = 8 C B^2 and P2 = 32 C B^2 (C channels), a speckle
@@ -65,6 +65,19 @@ MARGIN_COLUMNS = 8
 #: true depth). Measured at 1 px: real pairs +0.025 precision, -0.004 coverage (Midd1's
 #: plain wall had lain at the end of its search); generated +0.047 / -0.002.
 END_COLUMNS = 8
+#: Without SIFT points to bound the search (fewer than 8 inliers), a coarse pass
+#: (:func:`coarse_range`) matches copies of the images reduced by a power of two (at
+#: least 2) until their line images are at most this many columns wide, over every
+#: parallax from :data:`NEAR_BASELINES` to infinity, and the full-size search spans what
+#: it found. (The dino's pairs two views apart searched up to 10,800 columns, 2.7 s a
+#: call, and 8 of 16 gave no point; with the pass, 2-4 s and all 16 give points.)
+COARSE_COLUMNS = 384
+#: ...between these percentiles of its disparities, so that a few stray matches do not
+#: widen it.
+COARSE_PERCENTILES = (0.5, 99.5)
+#: The nearest scene point searched without SIFT points: a fifth of the baseline from
+#: camera 1 (as the DP's depth band, :func:`.sefm.depth_range`).
+NEAR_BASELINES = 0.2
 #: SIFT depth ranges are sampled over image 1 on a grid this coarse (px).
 _GRID_PX = 8.0
 #: Neighbouring disparities within this many columns of the nearest cell's are on its
@@ -109,7 +122,7 @@ def search_range(tv: TwoView, grid: LineGrid, size1: tuple[int, int], margin: fl
     fold on the generated scenes.
     """
     if len(tv.kp1) < 8:
-        lo, hi = parallax_columns(tv, grid, size1, (0.2 * float(np.linalg.norm(tv.t)), float("inf")))
+        lo, hi = parallax_columns(tv, grid, size1, (NEAR_BASELINES * float(np.linalg.norm(tv.t)), float("inf")))
     elif not sift_parallax:
         lo, hi = parallax_columns(tv, grid, size1, depth_range(tv, 2.0))
     else:
@@ -262,6 +275,52 @@ def pixel_matches(disp: np.ndarray, min_disparity: float, grid: LineGrid, tv: Tw
     return np.concatenate(out1), np.concatenate(out2), np.concatenate(out_r)
 
 
+def coarse_range(img1: np.ndarray, img2: np.ndarray, tv: TwoView, grid: LineGrid, cfg: Config,
+                 lo: float, hi: float) -> tuple[float, float] | None:
+    """(lo, hi) columns of ``grid`` that hold the surfaces SGM finds on reduced copies of
+    the images when it searches parallax columns ``lo..hi``; None where it finds none.
+
+    The images are reduced (area average) by the smallest power of two from 2 that brings
+    their line images to at most :data:`COARSE_COLUMNS` columns; estimates at the ends of the
+    coarse search are dropped (:func:`drop_range_ends`) and the rest kept between
+    :data:`COARSE_PERCENTILES`.
+    """
+    factor = 2
+    while grid.columns / factor > COARSE_COLUMNS:
+        factor *= 2
+    small, Ks = [], []
+    for img, K in ((img1, tv.K1), (img2, tv.K2)):
+        h, w = img.shape[:2]
+        im = cv2.resize(img, (-(-w // factor), -(-h // factor)), interpolation=cv2.INTER_AREA)
+        small.append(im)
+        Ks.append(np.diag([im.shape[1] / w, im.shape[0] / h, 1.0]) @ K)  # COLMAP positions scale as the image
+    size1, size2 = ((im.shape[1], im.shape[0]) for im in small)
+    tvc = TwoView(Ks[0], Ks[1], tv.R, tv.t)
+    gc = line_grid(tvc, size1, size2, cfg.lines.max_lines)
+    if len(gc.phi) == 0:
+        return None
+    to_fine = gc.u_step / grid.u_step  # full-size columns per coarse column
+    min_d = int(math.floor(lo / to_fine)) - 1
+    num_d = int(math.ceil((hi / to_fine - min_d + 2) / 16.0)) * 16
+    gc.pad = num_d + 1
+    L1, L2 = line_images(small[0], small[1], tvc, gc, gc.pad + gc.columns + 1, shift2=min_d, bicubic=False)
+    cn = L1.shape[2] if L1.ndim == 3 else 1
+    full = L1.shape[0] * L1.shape[1] * num_d <= MAX_FULL_VOLUME
+    sgbm = cv2.StereoSGBM_create(minDisparity=0, numDisparities=num_d, blockSize=BLOCK, P1=8 * cn * BLOCK**2,
+                                 P2=32 * cn * BLOCK**2, disp12MaxDiff=LR_MAX_DIFF, uniquenessRatio=cfg.sgm.uniqueness,
+                                 speckleWindowSize=SPECKLE_WINDOW, speckleRange=SPECKLE_RANGE,
+                                 mode=cv2.STEREO_SGBM_MODE_HH if full else cv2.STEREO_SGBM_MODE_SGBM_3WAY)
+    disp = sgbm.compute(L1, L2).astype(np.float32) / 16.0 + min_d
+    drop_range_ends(disp, min_d, min_d + num_d - 1, min_d - 1.0)
+    found = disp[disp >= min_d]
+    if len(found) == 0:
+        return None
+    c_lo, c_hi = np.percentile(found, COARSE_PERCENTILES) * to_fine
+    logger.info("coarse pass (1/%d size): parallax %.0f..%.0f columns found in %.0f..%.0f", factor, c_lo, c_hi,
+                lo, hi)
+    return float(c_lo), float(c_hi)
+
+
 def match_pair_sgm(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config,
                    progress: bool = False) -> DenseMatches:
     """Dense matches between two working images by SGM on their polar line images.
@@ -282,6 +341,13 @@ def match_pair_sgm(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config,
         raise InputError("no epipolar line crosses both images: with this geometry the views do not overlap")
     opt = cfg.sgm
     lo, hi = search_range(tv, grid, size1, opt.range_margin, opt.sift_range)
+    if len(tv.kp1) < 8 and opt.coarse_range:  # no SIFT range: every depth, unless a coarse pass narrows it
+        found = coarse_range(img1, img2, tv, grid, cfg, lo, hi)
+        if found is not None:
+            # widened as a SIFT range is (the margin's 8 columns exceed a coarse column up to 1/8 size)
+            m = max(MARGIN_COLUMNS, opt.range_margin * (found[1] - found[0]))
+            lo = max(lo, found[0] - m - END_COLUMNS - 1)
+            hi = min(hi, found[1] + m + END_COLUMNS + 1)
     min_d = int(math.floor(lo))
     num_d = int(math.ceil((hi - lo + 1) / 16.0)) * 16  # OpenCV: a multiple of 16
     # Image 2's line image is shifted by min_d, so that OpenCV searches 0..num_d; the pad
