@@ -52,9 +52,9 @@ LR_MAX_DIFF = 1
 MAX_FULL_VOLUME = 250_000_000
 #: The parallax range is widened by ``cfg.sgm.range_margin`` of its span on each side
 #: (surfaces nearer or farther than every SIFT point), and by at least this many columns,
-#: the evaluation's SGBM peer's margin of 8 px. Without the quarter span, Lampshade2
-#: loses 0.023-0.029 of coverage (a surface beyond every SIFT point); the means move by
-#: 0.001.
+#: the evaluation's SGBM peer's margin of 8 px. Without the quarter span the real
+#: pairs' means move by less than 0.001; with line images 0.8 px apart, Lampshade2 lost
+#: 0.023-0.029 of coverage (a surface beyond every SIFT point).
 MARGIN_COLUMNS = 8
 #: The search then goes this many columns further at each end (OpenCV's estimates at the
 #: ends of its range are poor), and one more: an estimate within one column of either end
@@ -62,8 +62,9 @@ MARGIN_COLUMNS = 8
 #: so its minimum is the edge of the search, not a minimum found; and it is where OpenCV
 #: breaks the ties of a plain surface (the first disparity of the search wins: the plain
 #: walls of Midd2 and Monopoly, 40 % of their matches, lay there, up to 8 px from their
-#: true depth). Measured at 1 px: real pairs +0.025 precision, -0.004 coverage (Midd1's
-#: plain wall had lain at the end of its search); generated +0.047 / -0.002.
+#: true depth). Measured at 1 px on the real pairs: +0.029 precision, coverage within
+#: 0.001 (the ablation); on the generated scenes, with line images 0.8 px apart, +0.047
+#: / -0.002.
 END_COLUMNS = 8
 #: Without SIFT points to bound the search (fewer than 8 inliers), a coarse pass
 #: (:func:`coarse_range`) matches copies of the images reduced by a power of two (at
