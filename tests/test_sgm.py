@@ -258,7 +258,6 @@ def test_sgm_drops_estimates_at_the_edge_of_its_search():
     # 2 px of the edge without the check, none with it.
     import cv2
 
-    from sefm_recon.matching.lines import line_grid
     from sefm_recon.matching.sgm import match_pair_sgm, search_range
 
     rng = np.random.default_rng(5)
@@ -287,7 +286,6 @@ def test_a_coarse_pass_bounds_the_search_where_sift_gives_no_range():
     # No SIFT inliers: the search would span every parallax from a fifth of the
     # baseline to infinity (hundreds of columns here). The coarse pass at half size finds
     # the two surfaces (10 and 30 px) and the search spans them.
-    from sefm_recon.matching.lines import line_grid
     from sefm_recon.matching.sgm import MARGIN_COLUMNS, coarse_range, match_pair_sgm, search_range
 
     img1, img2, tv, d = _lateral_pair()

@@ -276,6 +276,23 @@ def pixel_matches(disp: np.ndarray, min_disparity: float, grid: LineGrid, tv: Tw
     return np.concatenate(out1), np.concatenate(out2), np.concatenate(out_r)
 
 
+def _sgbm(L1: np.ndarray, L2: np.ndarray, min_d: int, num_d: int, uniqueness: int, *, all_paths: bool = True,
+          lr_check: bool = True, speckle: bool = True) -> tuple[np.ndarray, bool]:
+    """OpenCV's StereoSGBM (the settings above) over line images whose image 2 is shifted by
+    ``min_d``, searching ``num_d`` columns: the disparity map (float32 columns, invalid below
+    ``min_d``) and whether all 8 paths ran (where the cost volume fits :data:`MAX_FULL_VOLUME`)."""
+    cn = L1.shape[2] if L1.ndim == 3 else 1
+    full = all_paths and L1.shape[0] * L1.shape[1] * num_d <= MAX_FULL_VOLUME
+    sgbm = cv2.StereoSGBM_create(minDisparity=0, numDisparities=num_d, blockSize=BLOCK,
+                                 P1=8 * cn * BLOCK**2, P2=32 * cn * BLOCK**2,
+                                 disp12MaxDiff=LR_MAX_DIFF if lr_check else -1, uniquenessRatio=uniqueness,
+                                 speckleWindowSize=SPECKLE_WINDOW if speckle else 0,
+                                 speckleRange=SPECKLE_RANGE,
+                                 mode=cv2.STEREO_SGBM_MODE_HH if full else cv2.STEREO_SGBM_MODE_SGBM_3WAY)
+    # fixed point, 4 fractional bits; invalid: -1 (below min_d once shifted)
+    return sgbm.compute(L1, L2).astype(np.float32) / 16.0 + min_d, full
+
+
 def coarse_range(img1: np.ndarray, img2: np.ndarray, tv: TwoView, grid: LineGrid, cfg: Config,
                  lo: float, hi: float) -> tuple[float, float] | None:
     """(lo, hi) columns of ``grid`` that hold the surfaces SGM finds on reduced copies of
@@ -305,13 +322,7 @@ def coarse_range(img1: np.ndarray, img2: np.ndarray, tv: TwoView, grid: LineGrid
     num_d = int(math.ceil((hi / to_fine - min_d + 2) / 16.0)) * 16
     gc.pad = num_d + 1
     L1, L2 = line_images(small[0], small[1], tvc, gc, gc.pad + gc.columns + 1, shift2=min_d, bicubic=False)
-    cn = L1.shape[2] if L1.ndim == 3 else 1
-    full = L1.shape[0] * L1.shape[1] * num_d <= MAX_FULL_VOLUME
-    sgbm = cv2.StereoSGBM_create(minDisparity=0, numDisparities=num_d, blockSize=BLOCK, P1=8 * cn * BLOCK**2,
-                                 P2=32 * cn * BLOCK**2, disp12MaxDiff=LR_MAX_DIFF, uniquenessRatio=cfg.sgm.uniqueness,
-                                 speckleWindowSize=SPECKLE_WINDOW, speckleRange=SPECKLE_RANGE,
-                                 mode=cv2.STEREO_SGBM_MODE_HH if full else cv2.STEREO_SGBM_MODE_SGBM_3WAY)
-    disp = sgbm.compute(L1, L2).astype(np.float32) / 16.0 + min_d
+    disp, _ = _sgbm(L1, L2, min_d, num_d, cfg.sgm.uniqueness)
     drop_range_ends(disp, min_d, min_d + num_d - 1, min_d - 1.0)
     found = disp[disp >= min_d]
     if len(found) == 0:
@@ -360,15 +371,8 @@ def match_pair_sgm(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config,
     logger.info("line images %dx%d, parallax %d..%d columns", width, len(grid.phi), min_d, min_d + num_d)
 
     t0 = time.perf_counter()
-    cn = L1.shape[2] if L1.ndim == 3 else 1
-    full = opt.all_paths and L1.shape[0] * L1.shape[1] * num_d <= MAX_FULL_VOLUME
-    sgbm = cv2.StereoSGBM_create(minDisparity=0, numDisparities=num_d, blockSize=BLOCK,
-                                 P1=8 * cn * BLOCK**2, P2=32 * cn * BLOCK**2,
-                                 disp12MaxDiff=LR_MAX_DIFF if opt.lr_check else -1, uniquenessRatio=opt.uniqueness,
-                                 speckleWindowSize=SPECKLE_WINDOW if opt.speckle else 0,
-                                 speckleRange=SPECKLE_RANGE,
-                                 mode=cv2.STEREO_SGBM_MODE_HH if full else cv2.STEREO_SGBM_MODE_SGBM_3WAY)
-    disp = sgbm.compute(L1, L2).astype(np.float32) / 16.0 + min_d  # fixed point, 4 fractional bits; invalid: -1
+    disp, full = _sgbm(L1, L2, min_d, num_d, opt.uniqueness, all_paths=opt.all_paths, lr_check=opt.lr_check,
+                       speckle=opt.speckle)
     del L1, L2
     n_ends = drop_range_ends(disp, min_d, min_d + num_d - 1, min_d - 1.0) if opt.end_check else 0
     n_dense = int(np.count_nonzero(disp >= min_d))
