@@ -235,7 +235,7 @@ class SgmConfig:
     """Switches of the default matcher's stages (``dense.method = "sgm"``), for the ablation:
     internal, only the evaluation and the tests change them (:mod:`.matching.sgm`)."""
 
-    all_paths: bool = True  #: 8 paths where the cost volume fits (false: always OpenCV's 3 directions)
+    full_paths: bool = True  #: 4 full paths where the cost volume fits (false: always OpenCV's 3 directions)
     lr_check: bool = True  #: left-right consistency within one column
     uniqueness: int = 10  #: best cost this many percent below the second best (0 = off)
     speckle: bool = True  #: drop small islands of disparity (OpenCV's speckle filter)

@@ -50,7 +50,7 @@ MOTIONS = ("lateral", "converging", "forward", "zoom")
 #: off, or back to the simpler choice in brackets.
 SGM_ABLATIONS: dict[str, list[str]] = {
     "SGM over polar line images, all stages (default)": [],
-    "- 8 aggregation paths (OpenCV's 3 directions)": ["sgm.all_paths=false"],
+    "- 4 full aggregation paths (OpenCV's 3 directions)": ["sgm.full_paths=false"],
     "- left-right check": ["sgm.lr_check=false"],
     "- uniqueness test": ["sgm.uniqueness=0"],
     "- speckle filter": ["sgm.speckle=false"],
