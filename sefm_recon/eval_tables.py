@@ -57,6 +57,7 @@ SGM_ABLATIONS: dict[str, list[str]] = {
     "- search range from the SIFT parallax (their depths x2 and /2)": ["sgm.sift_range=false"],
     "- range margin of a quarter span (8 columns)": ["sgm.range_margin=0"],
     "- estimates at the ends of the search dropped": ["sgm.end_check=false"],
+    "- estimates on windows of one value dropped": ["sgm.flat_check=false"],
     "- bicubic line images (bilinear)": ["sgm.bicubic=false"],
     "- interpolated read-back at each pixel (nearest cell)": ["sgm.interpolate=false"],
 }

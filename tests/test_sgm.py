@@ -314,6 +314,28 @@ def test_sgm_drops_estimates_at_the_edge_of_its_search():
     assert len(found[True]) < 0.05 * len(edge)
 
 
+def test_sgm_drops_estimates_on_windows_without_signal():
+    # A textured plane 10 px of disparity away with a clipped black patch on it (a
+    # black object in front of a black background looks the same): inside the patch
+    # every disparity costs alike, and the aggregation paths carry the plane's depth
+    # in. Those estimates come from the surroundings, not from the patch.
+    from sefm_recon.matching.sgm import match_pair_sgm
+
+    img1, img2, tv, d = _lateral_pair()
+    img1, img2 = img1.copy(), img2.copy()
+    img1[80:160, 60:140] = 0
+    img2[80:160, 50:130] = 0  # the patch on the background, at its 10 px
+    inside = {}
+    for check in (False, True):
+        res = match_pair_sgm(img1, img2, tv, load_config(None, [f"sgm.flat_check={str(check).lower()}"], internal=True))
+        u, v = res.uv1[:, 0], res.uv1[:, 1]
+        # more than half a window (2 px) inside the patch, away from its edges' signal
+        inside[check] = np.count_nonzero((u > 63) & (u < 137) & (v > 83) & (v < 157))
+        assert len(res.uv1) > 0.7 * 320 * 240
+    assert inside[False] > 0.5 * 74 * 74  # without the check, the paths fill most of it
+    assert inside[True] == 0
+
+
 def test_a_coarse_pass_bounds_the_search_where_sift_gives_no_range():
     # No SIFT inliers: the search would span every parallax from a fifth of the
     # baseline to infinity (hundreds of columns here). The coarse pass at half size finds

@@ -5,7 +5,9 @@ semi-global matching over the rows of the line images (:mod:`.lines`). Here Open
 StereoSGBM aggregates the cost along several paths across neighbouring lines, with
 its Birchfield-Tomasi cost on gradient-prefiltered images (robust to gain and
 offset), a uniqueness test, a left-right check and sub-pixel interpolation. The
-search range comes from the parallax of the pose's SIFT inliers (:func:`search_range`).
+search range comes from the parallax of the pose's SIFT inliers (:func:`search_range`);
+estimates at its ends (:func:`drop_range_ends`) and on windows without signal
+(:func:`drop_flat_windows`) are dropped.
 The disparities are then read back at every pixel of image 1 (:func:`pixel_matches`):
 the pixel's own ray gives its row and column, the disparity there its ray in image 2,
 so each pixel holds one match exactly on its epipolar line whatever the sampling of the
@@ -147,6 +149,24 @@ def drop_range_ends(disp: np.ndarray, lo: int, hi: int, invalid: float) -> int:
     ends = (disp > invalid) & ((disp < lo + 1) | (disp > hi - 1))
     disp[ends] = invalid
     return int(np.count_nonzero(ends))
+
+
+def drop_flat_windows(disp: np.ndarray, L1: np.ndarray, invalid: float) -> int:
+    """Set the disparities whose matching window (:data:`BLOCK` square) in line image 1 has
+    a single value in every channel to ``invalid``, in place; returns how many.
+
+    Such a window carries no signal at all: a clipped black or white area (the dino's
+    background), or the fill beyond a warped or undistorted image's edge. Its cost is
+    the same at every disparity, so its estimate came from the aggregation paths alone,
+    carried in from the surfaces around it. The test is exact (max = min), no threshold:
+    an evenly lit real wall still varies by a grey level or so over 5x5 pixels.
+    """
+    kernel = np.ones((BLOCK, BLOCK), np.uint8)
+    spread = cv2.dilate(L1, kernel) - cv2.erode(L1, kernel)  # uint8: max - min over the window
+    flat = (spread.max(axis=2) if spread.ndim == 3 else spread) == 0
+    flat &= disp > invalid
+    disp[flat] = invalid
+    return int(np.count_nonzero(flat))
 
 
 class GridScalars(NamedTuple):
@@ -378,6 +398,7 @@ def match_pair_sgm(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config,
     t0 = time.perf_counter()
     disp, full = _sgbm(L1, L2, min_d, num_d, opt.uniqueness, full_paths=opt.full_paths, lr_check=opt.lr_check,
                        speckle=opt.speckle)
+    n_flat = drop_flat_windows(disp, L1, min_d - 1.0) if opt.flat_check else 0
     del L1, L2
     n_ends = drop_range_ends(disp, min_d, min_d + num_d - 1, min_d - 1.0) if opt.end_check else 0
     n_dense = int(np.count_nonzero(disp >= min_d))
@@ -393,6 +414,7 @@ def match_pair_sgm(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config,
         "dense_matches": n_dense,
         "valid_matches": int(len(keep)),
     }
-    logger.info("SGM (%s): %d line pairs, %d dense (%d more at the ends of the search dropped), %d valid",
-                "4 full paths" if full else "3 directions", counts["line_pairs"], n_dense, n_ends, len(keep))
+    logger.info("SGM (%s): %d line pairs, %d dense (%d more at the ends of the search and %d on windows without "
+                "signal dropped), %d valid", "4 full paths" if full else "3 directions", counts["line_pairs"], n_dense,
+                n_ends, n_flat, len(keep))
     return DenseMatches(uv1[keep], uv2[keep], np.ones(len(keep)), rows[keep], X[keep], counts, timings)
