@@ -108,7 +108,7 @@ def _plane_disparities(tv, grid, width, depth):
     return (np.arange(width)[None, :] - grid.column(a2)).astype(np.float32)
 
 
-def test_disparities_read_back_at_every_pixel_lie_on_its_epipolar_line():
+def test_disparities_read_back_at_every_pixel_lie_on_its_epipolar_line(monkeypatch):
     from sefm_recon.matching.sgm import pixel_matches
 
     tv = _two_view(rot_y(0.1), [-1.0, 0.05, 0.1])
@@ -132,6 +132,13 @@ def test_disparities_read_back_at_every_pixel_lie_on_its_epipolar_line():
     assert np.percentile(err, 99) < 0.05 and err.max() < 0.5
     # no match from the hole's rows, except where a pixel's nearest row is outside it
     assert not np.any((rows > 101) & (rows < 118))
+    # read back a few image rows at a time (as a large photo is): the same matches, in order
+    import sefm_recon.matching.sgm as sgm
+
+    monkeypatch.setattr(sgm, "_CHUNK_PIXELS", 7 * 320 + 5)
+    chunked = pixel_matches(disp, 0.0, grid, tv, (320, 240), (320, 240))
+    for a, b in zip(chunked, (uv1, uv2, rows)):
+        assert np.array_equal(a, b)
 
 
 def _lateral_pair(corrupt_rows=None):

@@ -262,6 +262,35 @@ def _read_back(disp, row_of, g, basis, K1inv, P2, w1, y0, w2, h2, uv2, row):
         row[i] = rn
 
 
+@njit(parallel=True, cache=True)
+def _compact(uv2, row, w, y0):
+    """The matched pixels of a chunk (``row >= 0``) in pixel order: ``(uv1, uv2, row)`` packed,
+    one parallel pass per image row (counting, then writing at each row's offset)."""
+    nrows = row.shape[0] // w
+    count = np.zeros(nrows + 1, np.int64)
+    for r in prange(nrows):
+        c = 0
+        for j in range(r * w, (r + 1) * w):
+            if row[j] >= 0:
+                c += 1
+        count[r + 1] = c
+    start = np.cumsum(count)
+    out1 = np.empty((start[-1], 2))
+    out2 = np.empty((start[-1], 2))
+    out_r = np.empty(start[-1], np.int64)
+    for r in prange(nrows):
+        m = start[r]
+        for j in range(r * w, (r + 1) * w):
+            if row[j] >= 0:
+                out1[m, 0] = j - r * w + 0.5
+                out1[m, 1] = y0 + r + 0.5
+                out2[m, 0] = uv2[j, 0]
+                out2[m, 1] = uv2[j, 1]
+                out_r[m] = row[j]
+                m += 1
+    return out1, out2, out_r
+
+
 def pixel_matches(disp: np.ndarray, min_disparity: float, grid: LineGrid, tv: TwoView,
                   size1: tuple[int, int], size2: tuple[int, int], interpolate: bool = True):
     """One match per pixel of image 1 from a disparity map of the line images.
@@ -294,10 +323,12 @@ def pixel_matches(disp: np.ndarray, min_disparity: float, grid: LineGrid, tv: Tw
         uv2 = np.empty((n, 2))
         row = np.empty(n, np.int64)
         _read_back(disp, row_of, g, basis, K1inv, P2, w, y0, float(size2[0]), float(size2[1]), uv2, row)
-        ok = np.flatnonzero(row >= 0)
-        out1.append(np.column_stack([ok % w + 0.5, ok // w + (y0 + 0.5)]))
-        out2.append(uv2[ok])
-        out_r.append(row[ok])
+        a, b, c = _compact(uv2, row, w, y0)
+        out1.append(a)
+        out2.append(b)
+        out_r.append(c)
+    if len(out1) == 1:
+        return out1[0], out2[0], out_r[0]
     return np.concatenate(out1), np.concatenate(out2), np.concatenate(out_r)
 
 
