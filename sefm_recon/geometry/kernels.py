@@ -398,19 +398,22 @@ def ray_midpoint(Kinv1, Kinv2, Rt, c2, x1, y1, x2, y2):
 def triangulate_midpoint(Kinv1, Kinv2, Rt, c2, uv1, uv2):
     """Midpoint triangulation of pixel pairs ``uv1``, ``uv2`` (N, 2); see :func:`.triangulate.triangulate`.
 
-    Arguments as :func:`ray_midpoint`'s. Returns X (N, 3) camera-1 frame,
-    s1 (N,), s2 (N,) distances along the rays, cos_angle (N,).
+    Arguments as :func:`ray_midpoint`'s. Returns X (N, 3) camera-1 frame, valid (N,)
+    bool (finite, in front of both cameras, rays not parallel) and the angle between
+    the rays (N,), radians.
     """
     n = uv1.shape[0]
     X = np.empty((n, 3))
-    s1o = np.empty(n)
-    s2o = np.empty(n)
-    co = np.empty(n)
+    valid = np.empty(n, np.bool_)
+    angle = np.empty(n)
     for kk in prange(n):
         k = np.int64(kk)
         m = ray_midpoint(Kinv1, Kinv2, Rt, c2, uv1[k, 0], uv1[k, 1], uv2[k, 0], uv2[k, 1])
-        X[k, 0], X[k, 1], X[k, 2], s1o[k], s2o[k], co[k] = m.x, m.y, m.z, m.s1, m.s2, m.cos
-    return X, s1o, s2o, co
+        X[k, 0], X[k, 1], X[k, 2] = m.x, m.y, m.z
+        valid[k] = (np.isfinite(m.x) and np.isfinite(m.y) and np.isfinite(m.z) and m.s1 > 0.0 and m.s2 > 0.0
+                    and 1.0 - m.cos * m.cos > 1e-12)
+        angle[k] = np.arccos(min(1.0, max(-1.0, m.cos)))
+    return X, valid, angle
 
 
 @njit(parallel=True, cache=True)

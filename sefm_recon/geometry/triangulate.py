@@ -22,12 +22,7 @@ def triangulate(K1, K2, R, t, uv1, uv2):
     uv2 = np.ascontiguousarray(uv2, np.float64).reshape(-1, 2)
     R = np.asarray(R, np.float64)
     c2 = -R.T @ np.asarray(t, np.float64).reshape(3)
-    with np.errstate(invalid="ignore"):
-        X, s1, s2, cos = triangulate_midpoint(np.linalg.inv(K1), np.linalg.inv(K2), np.ascontiguousarray(R.T), c2,
-                                              uv1, uv2)
-        angle = np.arccos(np.clip(cos, -1.0, 1.0))
-        valid = np.isfinite(X).all(axis=1) & (s1 > 0) & (s2 > 0) & (1.0 - cos * cos > 1e-12)
-    return X, valid, angle
+    return triangulate_midpoint(np.linalg.inv(K1), np.linalg.inv(K2), np.ascontiguousarray(R.T), c2, uv1, uv2)
 
 
 def project(K: np.ndarray, R: np.ndarray, t: np.ndarray, X: np.ndarray) -> np.ndarray:
