@@ -6,7 +6,8 @@ For each pair: the relative pose error (rotation angle, translation direction
 angle) of the estimated two-view geometry against the truth, and for the dense
 SeFM matches the distance from the TRUE epipolar line (median, share within
 1 px and 2 px) and how many there are. ``--two-view-only`` stops after the
-SIFT pose (accepted pairs and pose errors in seconds, no dense matching). Intrinsics in pairs_with_gt.txt use the
+SIFT pose (accepted pairs and pose errors in seconds, no dense matching), and counts
+the putative SIFT matches within 2 px of the true epipolar lines. Intrinsics in pairs_with_gt.txt use the
 OpenCV convention; 0.5 is added to cx, cy for COLMAP's.
 """
 
@@ -53,6 +54,17 @@ def two_view_only(img0, img1, cam0, cam1, cfg):
     return two_view_stage(v0, v1, cfg)[0]
 
 
+def putative_on_true_lines(img0, img1, F, cfg, max_px: float = 2.0) -> tuple[int, int]:
+    """(putative SIFT matches, how many of them lie within ``max_px`` of the true epipolar
+    lines): whether there is a right pose among the matches for RANSAC to find."""
+    from sefm_recon.geometry.two_view import sift_correspondences
+    from sefm_recon.io.images import to_gray
+
+    xy0, xy1 = sift_correspondences(to_gray(img0), to_gray(img1), cfg.sift.max_features, cfg.sift.max_ratio,
+                                    max_size=cfg.sift.max_image_size, upsample_max_size=cfg.sift.upsample_max_size)
+    return len(xy0), int(np.count_nonzero(epipolar_distances(F, xy0, xy1) <= max_px))
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--pose", choices=["estimated", "true"], default="estimated")
@@ -72,6 +84,10 @@ def main():
         cam1.has_prior_focal_length = True
         row = {"pair": f"{n0} {n1}"}
         if args.two_view_only:
+            row["putative"], row["putative_on_true_lines"] = putative_on_true_lines(img0, img1, TwoView(K0, K1, R, t).F,
+                                                                                    cfg)
+            print(f"{n0[:22]:22s} {n1[-10:]:10s}  {row['putative_on_true_lines']} of {row['putative']} putative "
+                  "SIFT matches within 2 px of the true epipolar lines")
             try:
                 tv = two_view_only(img0, img1, cam0, cam1, cfg)
             except InputError as err:
