@@ -37,7 +37,8 @@ from .sefm import DenseMatches, depth_range
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["coarse_range", "drop_range_ends", "match_pair_sgm", "parallax_columns", "pixel_matches", "search_range"]
+__all__ = ["coarse_range", "drop_flat_windows", "drop_range_ends", "match_pair_sgm", "parallax_columns", "pixel_matches",
+           "search_range", "widen_range"]
 
 #: StereoSGBM's settings, those of the evaluation's planar SGBM peer: 5x5 blocks, OpenCV's
 #: recommended smoothness penalties P1 = 8 C B^2 and P2 = 32 C B^2 (C channels), a speckle
@@ -138,10 +139,16 @@ def search_range(tv: TwoView, grid: LineGrid, size1: tuple[int, int], margin: fl
         _, a1 = ray_angles(tv.K1, np.eye(3), grid.basis, tv.kp1)
         _, a2 = ray_angles(tv.K2, tv.R.T, grid.basis, tv.kp2)
         d = grid.column(a1) - grid.column(a2)
-        lo, hi = np.percentile(d, [1, 99])
-        m = max(MARGIN_COLUMNS, margin * (hi - lo))
-        lo, hi = lo - m, hi + m
+        return widen_range(*np.percentile(d, [1, 99]), margin)
     return float(lo - END_COLUMNS - 1), float(hi + END_COLUMNS + 1)
+
+
+def widen_range(lo: float, hi: float, margin: float) -> tuple[float, float]:
+    """A parallax range found (SIFT inliers, or the coarse pass) widened into the search: by
+    ``margin`` of its span and at least :data:`MARGIN_COLUMNS` on each side, then by
+    :data:`END_COLUMNS` and one column more (whose estimates are dropped, :func:`drop_range_ends`)."""
+    m = max(MARGIN_COLUMNS, margin * (hi - lo))
+    return float(lo - m - END_COLUMNS - 1), float(hi + m + END_COLUMNS + 1)
 
 
 def drop_range_ends(disp: np.ndarray, lo: int, hi: int, invalid: float) -> int:
@@ -417,9 +424,8 @@ def match_pair_sgm(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config,
         found = coarse_range(img1, img2, tv, grid, cfg, lo, hi)
         if found is not None:
             # widened as a SIFT range is (the margin's 8 columns exceed a coarse column up to 1/8 size)
-            m = max(MARGIN_COLUMNS, opt.range_margin * (found[1] - found[0]))
-            lo = max(lo, found[0] - m - END_COLUMNS - 1)
-            hi = min(hi, found[1] + m + END_COLUMNS + 1)
+            c_lo, c_hi = widen_range(*found, opt.range_margin)
+            lo, hi = max(lo, c_lo), min(hi, c_hi)
     min_d = int(math.floor(lo))
     num_d = int(math.ceil((hi - lo + 1) / 16.0)) * 16  # OpenCV: a multiple of 16
     # Image 2's line image is shifted by min_d, so that OpenCV searches 0..num_d; the pad
