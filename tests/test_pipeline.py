@@ -188,10 +188,11 @@ def test_a_focal_length_without_prior_is_said_at_the_default_verbosity(tmp_path,
 
 
 @pytest.mark.parametrize("rotation_deg", [0.0, 0.04])
-def test_the_pose_is_refined_where_the_tracks_gain_a_tenth_of_a_pixel(small_scene, monkeypatch, rotation_deg):
+def test_the_pose_is_refined_where_the_tracks_and_the_sift_inliers_favour_it(small_scene, monkeypatch, rotation_deg):
     """A SIFT pose 0.04 deg off leaves the tracks a median 0.2-0.3 px from its lines, a level a
     right pose of a warped image also shows; the refined pose brings them to the tracks' own
-    noise (under 0.1 px), and that gain refines it. The right pose gains nothing and stays."""
+    noise (under 0.1 px) and its lines nearer the SIFT inliers too, so it is used. The right
+    pose's refinement moves the lines too little to match again, and the pose stays."""
     v1, v2 = small_scene.views
     _off_pose(monkeypatch, [rotation_deg, 0.0, 0.0])
     cfg = load_config(None, ["output.mesh=false"], internal=True)
@@ -203,3 +204,41 @@ def test_the_pose_is_refined_where_the_tracks_gain_a_tenth_of_a_pixel(small_scen
         assert 0.15 < check["sift_pose_epipolar_px"] < 0.3 and check["refined_pose_epipolar_px"] < 0.1, check
         assert res.notes["pose"] == "estimated, refined with the dense matches"
         assert _pose_error_deg(res, v1, v2) < 0.03
+
+
+def test_tracks_biased_towards_a_wrong_pose_are_overruled_by_the_sift_inliers(small_scene, monkeypatch):
+    """Tracks that all lie on the lines of a pose 0.3 deg off (as a tracker biased by a scale
+    change can put them) favour that pose, but the SIFT inliers lie far from its lines, and the
+    SIFT pose stays."""
+    import dataclasses
+
+    import cv2
+
+    import sefm_recon.geometry.refine as refine
+    from sefm_recon.geometry.two_view import TwoView, epipolar_distances
+
+    v1, v2 = small_scene.views
+    R = v2.R @ v1.R.T
+    t = v2.t - R @ v1.t
+    wrong = TwoView(v1.K, v2.K, cv2.Rodrigues(np.radians([0.3, 0.0, 0.0]))[0] @ R, t)
+    real = refine.track_dense
+
+    def biased(*args, **kwargs):  # each track moved onto the wrong pose's epipolar line
+        tr = real(*args, **kwargs)
+        line = np.c_[tr.uv1, np.ones(len(tr.uv1))] @ wrong.F.T
+        off = np.sum(np.c_[tr.uv2, np.ones(len(tr.uv2))] * line, axis=1) / np.sum(line[:, :2] ** 2, axis=1)
+        return dataclasses.replace(tr, uv2=tr.uv2 - off[:, None] * line[:, :2])
+
+    monkeypatch.setattr(refine, "track_dense", biased)
+    cfg = load_config(None, ["output.mesh=false"], internal=True)
+    cams = [v1.camera(1), v2.camera(2)]
+    for c in cams:  # a known camera: the unknown-camera check would refuse the pose instead
+        c.has_prior_focal_length = True
+    res = reconstruct_pair(v1.image, v2.image, *cams, cfg)
+    check = res.notes["pose_check"]
+    assert check["refined_pose_epipolar_px"] < 0.5 * check["sift_pose_epipolar_px"], check  # the tracks favour it
+    sift_before, sift_after = check["sift_inliers_epipolar_px"]
+    assert sift_after > 2 * sift_before and check["refined_line_shift_px"] > 0.5, check
+    assert res.notes["pose"] == "estimated" and _pose_error_deg(res, v1, v2) < 0.1
+    # the matches lie on the SIFT pose's lines, not the wrong pose's
+    assert np.median(epipolar_distances(wrong.F, res.uv1, res.uv2)) > 0.3

@@ -108,6 +108,14 @@ def pose_evidence(tv: TwoView, tracks: DenseTracks) -> float:
     return float(np.median(epipolar_distances(tv.F, tracks.uv1, tracks.uv2)))
 
 
+def inlier_evidence(pose: TwoView, tv: TwoView) -> tuple[float, int]:
+    """Median distance (px) of ``tv``'s SIFT inliers from ``pose``'s epipolar lines, and their number
+    (NaN, 0: none)."""
+    if len(tv.kp1) == 0:
+        return float("nan"), 0
+    return float(np.median(epipolar_distances(pose.F, tv.kp1, tv.kp2))), len(tv.kp1)
+
+
 def refine_pose(tv: TwoView, tracks: DenseTracks, size1: tuple[int, int], size2: tuple[int, int],
                 max_error: float = 1.0) -> TwoView | None:
     """The relative pose re-estimated from the free tracks with the known cameras (RANSAC, then
