@@ -229,6 +229,7 @@ def estimate_two_view(
     pose = tvg.cam2_from_cam1
     if pose is None:
         raise InputError("could not recover a relative pose from the matches (degenerate geometry)")
+    pose = refine_on_inliers(pose, cam1, cam2, xy1[inliers[:, 0]], xy2[inliers[:, 1]])
     R = np.asarray(pose.rotation.matrix(), dtype=np.float64)
     t = np.asarray(pose.translation, dtype=np.float64).reshape(3)
     t = t / max(np.linalg.norm(t), 1e-12)
@@ -248,6 +249,35 @@ def estimate_two_view(
             "(geometry.min_tri_angle_deg); the depth will be noisy (%.1f px of parallax beyond a pure rotation)",
             angle, min_tri_angle_deg, parallax)
     return tv
+
+
+def refine_on_inliers(pose: pycolmap.Rigid3d, cam1: pycolmap.Camera, cam2: pycolmap.Camera,
+                      xy1: np.ndarray, xy2: np.ndarray) -> pycolmap.Rigid3d:
+    """The relative pose refined over all its inliers (pycolmap's ``refine_relative_pose``:
+    least squares of the tangent Sampson error) where that brings them closer to its
+    epipolar lines (median distance); else ``pose``.
+
+    ``estimate_calibrated_two_view_geometry`` decomposes the essential matrix its RANSAC
+    found without refining the pose over every inlier; where the geometry is nearly
+    degenerate (the camera moving along its axis: a generated zoom pair) that left a pose
+    6.2 deg off in rotation and 22 deg in translation direction, refined to 0.09 and 0.27
+    deg (inliers' median 0.208 -> 0.186 px). Least squares is not robust: on a converging
+    pair, a few inliers near the 2 px threshold pulled a pose 0.09 deg off in translation
+    direction to 1.2 deg, and the inliers' median rose 0.090 -> 0.116 px; the median keeps
+    the better of the two.
+    """
+    xy1, xy2 = np.ascontiguousarray(xy1, np.float64), np.ascontiguousarray(xy2, np.float64)
+    out = pycolmap.refine_relative_pose(pose, cam1, xy1, cam2, xy2, np.ones((len(xy1), 1), bool))
+    if out is None:
+        return pose
+    K1, K2 = cam1.calibration_matrix(), cam2.calibration_matrix()
+
+    def median_px(p: pycolmap.Rigid3d) -> float:
+        F = TwoView(K1, K2, np.asarray(p.rotation.matrix()), np.asarray(p.translation).reshape(3)).F
+        return float(np.median(epipolar_distances(F, xy1, xy2)))
+
+    new = out["cam2_from_cam1"]
+    return new if median_px(new) < median_px(pose) else pose
 
 
 #: A pose is refused as a pure rotation when the best rotation alone moves the SIFT
