@@ -320,8 +320,7 @@ MIN_TRACKED_SHARE = 0.28
 def _refined_pose_holds(tv, new, dm: DenseMatches, before: float, after: float, notes: dict) -> bool:
     """The tracks favour the refined pose, the SIFT inliers do not speak against it
     (SIFT_AGREE_SE), and it moves the lines enough to match again (MIN_LINE_SHIFT_PX)."""
-    from .geometry.refine import inlier_evidence
-    from .geometry.two_view import epipolar_distances
+    from .geometry.two_view import epipolar_distances, inlier_evidence
 
     if not after < before or len(dm.uv1) == 0:
         return False

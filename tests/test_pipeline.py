@@ -130,6 +130,14 @@ def _pose_error_deg(res, v1, v2):
     return float(np.degrees(np.arccos(np.clip((np.trace(R.T @ res.R) - 1) / 2, -1, 1))))
 
 
+def _known_cameras(v1, v2):
+    """The views' true cameras, marked as given: the unknown-camera check would refuse a wrong pose instead."""
+    cams = [v1.camera(1), v2.camera(2)]
+    for c in cams:
+        c.has_prior_focal_length = True
+    return cams
+
+
 def test_a_slightly_wrong_sift_pose_is_refined_with_the_dense_matches(small_scene, monkeypatch):
     """A SIFT pose 0.4 deg off puts the lines about 2 px off: the free dense tracks pull it back."""
     v1, v2 = small_scene.views
@@ -164,10 +172,7 @@ def test_tracks_of_a_failed_tracker_refine_nothing(small_scene, monkeypatch):
     v1, v2 = small_scene.views
     _off_pose(monkeypatch, [0.4, 0.0, 0.0])
     cfg = load_config(None, ["output.mesh=false"], internal=True)
-    cams = [v1.camera(1), v2.camera(2)]
-    for c in cams:  # a known camera: the unknown-camera check would refuse the pose instead
-        c.has_prior_focal_length = True
-    res = reconstruct_pair(v1.image, v2.image, *cams, cfg)
+    res = reconstruct_pair(v1.image, v2.image, *_known_cameras(v1, v2), cfg)
     assert res.notes["pose_check"]["sift_pose_epipolar_px"] > 0.3  # off, and it would be refined if trusted
     assert res.notes["pose"] == "estimated" and _pose_error_deg(res, v1, v2) > 0.3
 
@@ -231,10 +236,7 @@ def test_tracks_biased_towards_a_wrong_pose_are_overruled_by_the_sift_inliers(sm
 
     monkeypatch.setattr(refine, "track_dense", biased)
     cfg = load_config(None, ["output.mesh=false"], internal=True)
-    cams = [v1.camera(1), v2.camera(2)]
-    for c in cams:  # a known camera: the unknown-camera check would refuse the pose instead
-        c.has_prior_focal_length = True
-    res = reconstruct_pair(v1.image, v2.image, *cams, cfg)
+    res = reconstruct_pair(v1.image, v2.image, *_known_cameras(v1, v2), cfg)
     check = res.notes["pose_check"]
     assert check["refined_pose_epipolar_px"] < 0.5 * check["sift_pose_epipolar_px"], check  # the tracks favour it
     sift_before, sift_after = check["sift_inliers_epipolar_px"]

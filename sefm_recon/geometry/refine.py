@@ -19,7 +19,7 @@ import cv2
 import numpy as np
 import pycolmap
 
-from .two_view import TwoView, epipolar_distances
+from .two_view import TwoView, epipolar_distances, rotation_translation
 
 logger = logging.getLogger(__name__)
 
@@ -108,14 +108,6 @@ def pose_evidence(tv: TwoView, tracks: DenseTracks) -> float:
     return float(np.median(epipolar_distances(tv.F, tracks.uv1, tracks.uv2)))
 
 
-def inlier_evidence(pose: TwoView, tv: TwoView) -> tuple[float, int]:
-    """Median distance (px) of ``tv``'s SIFT inliers from ``pose``'s epipolar lines, and their number
-    (NaN, 0: none)."""
-    if len(tv.kp1) == 0:
-        return float("nan"), 0
-    return float(np.median(epipolar_distances(pose.F, tv.kp1, tv.kp2))), len(tv.kp1)
-
-
 def refine_pose(tv: TwoView, tracks: DenseTracks, size1: tuple[int, int], size2: tuple[int, int],
                 max_error: float = 1.0) -> TwoView | None:
     """The relative pose re-estimated from the free tracks with the known cameras (RANSAC, then
@@ -143,9 +135,7 @@ def refine_pose(tv: TwoView, tracks: DenseTracks, size1: tuple[int, int], size2:
     inl = np.asarray(tvg.inlier_matches, dtype=np.int64).reshape(-1, 2)
     if tvg.cam2_from_cam1 is None or int(tvg.config) != int(C.CALIBRATED) or len(inl) < MIN_TRACKS:
         return None
-    R = np.asarray(tvg.cam2_from_cam1.rotation.matrix(), dtype=np.float64)
-    t = np.asarray(tvg.cam2_from_cam1.translation, dtype=np.float64).reshape(3)
-    t = t / max(np.linalg.norm(t), 1e-12)
+    R, t = rotation_translation(tvg.cam2_from_cam1)
     return replace(tv, R=R, t=t, source="estimated, refined with the dense matches")
 
 

@@ -230,10 +230,7 @@ def estimate_two_view(
     if pose is None:
         raise InputError("could not recover a relative pose from the matches (degenerate geometry)")
     pose = refine_on_inliers(pose, cam1, cam2, xy1[inliers[:, 0]], xy2[inliers[:, 1]])
-    R = np.asarray(pose.rotation.matrix(), dtype=np.float64)
-    t = np.asarray(pose.translation, dtype=np.float64).reshape(3)
-    t = t / max(np.linalg.norm(t), 1e-12)
-    tv = TwoView(K1, K2, R, t, xy1[inliers[:, 0]], xy2[inliers[:, 1]], len(xy1))
+    tv = TwoView(K1, K2, *rotation_translation(pose), xy1[inliers[:, 0]], xy2[inliers[:, 1]], len(xy1))
     angle = float(np.degrees(np.median(triangulation_angles(tv))))
     turn, parallax = rotation_parallax(tv)
     if not np.isfinite(parallax) or parallax < ROTATION_PARALLAX_PX:
@@ -270,14 +267,17 @@ def refine_on_inliers(pose: pycolmap.Rigid3d, cam1: pycolmap.Camera, cam2: pycol
     out = pycolmap.refine_relative_pose(pose, cam1, xy1, cam2, xy2, np.ones((len(xy1), 1), bool))
     if out is None:
         return pose
-    K1, K2 = cam1.calibration_matrix(), cam2.calibration_matrix()
-
-    def median_px(p: pycolmap.Rigid3d) -> float:
-        F = TwoView(K1, K2, np.asarray(p.rotation.matrix()), np.asarray(p.translation).reshape(3)).F
-        return float(np.median(epipolar_distances(F, xy1, xy2)))
-
     new = out["cam2_from_cam1"]
-    return new if median_px(new) < median_px(pose) else pose
+    old_tv = TwoView(cam1.calibration_matrix(), cam2.calibration_matrix(), *rotation_translation(pose), xy1, xy2)
+    new_tv = TwoView(old_tv.K1, old_tv.K2, *rotation_translation(new))
+    return new if inlier_evidence(new_tv, old_tv)[0] < inlier_evidence(old_tv, old_tv)[0] else pose
+
+
+def rotation_translation(pose: pycolmap.Rigid3d) -> tuple[np.ndarray, np.ndarray]:
+    """``(R, t)`` of a pycolmap ``cam2_from_cam1``, ``t`` of unit length (an estimated pose has no scale)."""
+    R = np.asarray(pose.rotation.matrix(), dtype=np.float64)
+    t = np.asarray(pose.translation, dtype=np.float64).reshape(3)
+    return R, t / max(np.linalg.norm(t), 1e-12)
 
 
 #: A pose is refused as a pure rotation when the best rotation alone moves the SIFT
@@ -360,6 +360,14 @@ def epipolar_distances(F: np.ndarray, xy1: np.ndarray, xy2: np.ndarray) -> np.nd
     d2 = num / np.maximum(np.hypot(l2[:, 0], l2[:, 1]), 1e-12)
     d1 = num / np.maximum(np.hypot(l1[:, 0], l1[:, 1]), 1e-12)
     return 0.5 * (d1 + d2)
+
+
+def inlier_evidence(pose: TwoView, tv: TwoView) -> tuple[float, int]:
+    """Median distance (px) of ``tv``'s SIFT inliers from ``pose``'s epipolar lines, and their number
+    (NaN, 0: none)."""
+    if len(tv.kp1) == 0:
+        return float("nan"), 0
+    return float(np.median(epipolar_distances(pose.F, tv.kp1, tv.kp2))), len(tv.kp1)
 
 
 def with_known_pose(K1, K2, R, t, xy1, xy2, max_error: float = 2.0) -> TwoView:
