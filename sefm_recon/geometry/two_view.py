@@ -248,29 +248,58 @@ def estimate_two_view(
     return tv
 
 
+#: The pose is then refined again over the inliers within this many standard deviations
+#: of its epipolar lines (sigma from their median distance, half-normal: median = 0.6745
+#: sigma), and again with the inliers that pass around the new pose, until they stay the
+#: same or :data:`ROBUST_ROUNDS` have run. Least squares over every RANSAC inlier (up to
+#: its 2 px threshold) lets the few near the threshold pull the pose; 3 sigma is the usual
+#: outlier bound of a normal error. Over the 60 real cases (true camera) the median
+#: rotation error fell 0.071 -> 0.031 deg and the translation direction's 0.295 -> 0.186
+#: deg (mean 0.689 -> 0.332, largest 3.05 -> 1.92); over the 20 generated scenes 0.020 ->
+#: 0.006 and 0.091 -> 0.029 deg.
+ROBUST_SIGMAS = 3.0
+ROBUST_ROUNDS = 5
+
+
 def refine_on_inliers(pose: pycolmap.Rigid3d, cam1: pycolmap.Camera, cam2: pycolmap.Camera,
                       xy1: np.ndarray, xy2: np.ndarray) -> pycolmap.Rigid3d:
-    """The relative pose refined over all its inliers (pycolmap's ``refine_relative_pose``:
-    least squares of the tangent Sampson error) where that brings them closer to its
-    epipolar lines (median distance); else ``pose``.
+    """The relative pose refined over its inliers: first over all of them (pycolmap's
+    ``refine_relative_pose``: least squares of the tangent Sampson error), kept where that
+    brings them closer to its epipolar lines (median distance), then over those within
+    :data:`ROBUST_SIGMAS` of its lines, repeated (:data:`ROBUST_ROUNDS`).
 
     ``estimate_calibrated_two_view_geometry`` decomposes the essential matrix its RANSAC
     found without refining the pose over every inlier; where the geometry is nearly
     degenerate (the camera moving along its axis: a generated zoom pair) that left a pose
     6.2 deg off in rotation and 22 deg in translation direction, refined to 0.09 and 0.27
-    deg (inliers' median 0.208 -> 0.186 px). Least squares is not robust: on a converging
-    pair, a few inliers near the 2 px threshold pulled a pose 0.09 deg off in translation
-    direction to 1.2 deg, and the inliers' median rose 0.090 -> 0.116 px; the median keeps
-    the better of the two.
+    deg (inliers' median 0.208 -> 0.186 px). Least squares over all of them is not robust:
+    on a converging pair, a few inliers near the 2 px threshold pulled a pose 0.09 deg off
+    in translation direction to 1.2 deg, and the inliers' median rose 0.090 -> 0.116 px;
+    the median keeps the better of the two. The rounds over the inliers near the lines
+    then leave those few out. (Those rounds alone, from RANSAC's pose, kept the zoom
+    pair's: its inliers within 3 sigma of a pose 6 deg off are those that pose fits.)
     """
     xy1, xy2 = np.ascontiguousarray(xy1, np.float64), np.ascontiguousarray(xy2, np.float64)
+    K1, K2 = cam1.calibration_matrix(), cam2.calibration_matrix()
+    old_tv = TwoView(K1, K2, *rotation_translation(pose), xy1, xy2)
     out = pycolmap.refine_relative_pose(pose, cam1, xy1, cam2, xy2, np.ones((len(xy1), 1), bool))
-    if out is None:
-        return pose
-    new = out["cam2_from_cam1"]
-    old_tv = TwoView(cam1.calibration_matrix(), cam2.calibration_matrix(), *rotation_translation(pose), xy1, xy2)
-    new_tv = TwoView(old_tv.K1, old_tv.K2, *rotation_translation(new))
-    return new if inlier_evidence(new_tv, old_tv)[0] < inlier_evidence(old_tv, old_tv)[0] else pose
+    if out is not None:
+        new = out["cam2_from_cam1"]
+        new_tv = TwoView(K1, K2, *rotation_translation(new))
+        if inlier_evidence(new_tv, old_tv)[0] < inlier_evidence(old_tv, old_tv)[0]:
+            pose = new
+    mask = None
+    for _ in range(ROBUST_ROUNDS):
+        d = epipolar_distances(TwoView(K1, K2, *rotation_translation(pose)).F, xy1, xy2)
+        near = d <= ROBUST_SIGMAS * np.median(d) / 0.6745
+        if (mask is not None and np.array_equal(near, mask)) or near.sum() < 8:  # 8: as many as an F needs
+            break
+        mask = near
+        out = pycolmap.refine_relative_pose(pose, cam1, xy1, cam2, xy2, mask.reshape(-1, 1))
+        if out is None:
+            break
+        pose = out["cam2_from_cam1"]
+    return pose
 
 
 def rotation_translation(pose: pycolmap.Rigid3d) -> tuple[np.ndarray, np.ndarray]:
