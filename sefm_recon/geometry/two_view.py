@@ -254,9 +254,9 @@ def estimate_two_view(
 #: same or :data:`ROBUST_ROUNDS` have run. Least squares over every RANSAC inlier (up to
 #: its 2 px threshold) lets the few near the threshold pull the pose; 3 sigma is the usual
 #: outlier bound of a normal error. Over the 60 real cases (true camera) the median
-#: rotation error fell 0.071 -> 0.031 deg and the translation direction's 0.295 -> 0.186
-#: deg (mean 0.689 -> 0.332, largest 3.05 -> 1.92); over the 20 generated scenes 0.020 ->
-#: 0.006 and 0.091 -> 0.029 deg.
+#: rotation error fell 0.071 -> 0.030 deg and the translation direction's 0.295 -> 0.177
+#: deg (mean 0.689 -> 0.318, largest 3.05 -> 1.92); over the 20 generated scenes 0.020 ->
+#: 0.006 and 0.091 -> 0.028 deg (scripts/eval_pose.py).
 ROBUST_SIGMAS = 3.0
 ROBUST_ROUNDS = 5
 
