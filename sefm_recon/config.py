@@ -246,6 +246,7 @@ class SgmConfig:
     coarse_range: bool = True  #: without 8 SIFT inliers, search what a coarse pass finds (false: every depth)
     bicubic: bool = True  #: bicubic line images (false: bilinear)
     interpolate: bool = True  #: read disparities back interpolated over the surface (false: nearest cell)
+    median: bool = True  #: smooth the disparities by a 5x5 median on their surface (false: as SGM leaves them)
 
 
 @dataclass

@@ -60,6 +60,7 @@ SGM_ABLATIONS: dict[str, list[str]] = {
     "- estimates on windows of one value dropped": ["sgm.flat_check=false"],
     "- bicubic line images (bilinear)": ["sgm.bicubic=false"],
     "- interpolated read-back at each pixel (nearest cell)": ["sgm.interpolate=false"],
+    "- median over each surface": ["sgm.median=false"],
 }
 
 #: Ablation rows of the sequential DP: each removes (or, marked +, adds) one stage beyond the paper.

@@ -8,7 +8,7 @@ from sefm_recon.evaluate import covisibility_mask, evaluate_matches
 from sefm_recon.geometry.epipolar import ray_angles
 from sefm_recon.geometry.two_view import TwoView
 from sefm_recon.matching.lines import COLUMN_SPACING_PX, ROW_SPACING_PX, line_grid, line_images, project, rays
-from sefm_recon.matching.sgm import parallax_columns
+from sefm_recon.matching.sgm import MEDIAN_SAME_SURFACE, parallax_columns, surface_median
 from sefm_recon.pipeline import reconstruct_pair
 
 from .conftest import rot_y
@@ -363,3 +363,30 @@ def test_a_coarse_pass_bounds_the_search_where_sift_gives_no_range():
     ij, truth, err = _disparity_errors(res, d)
     seen = np.isfinite(truth)
     assert np.mean(err[seen] < 1.0) > 0.95 and seen.sum() > 0.85 * np.isfinite(d).sum()
+
+
+def test_the_surface_median_removes_scatter_and_keeps_depth_edges_and_holes():
+    rng = np.random.default_rng(3)
+    rows, cols = 60, 80
+    c = np.arange(cols, dtype=np.float32)
+    truth = np.where(c < 40, 10.0 + 0.05 * c, 30.0).astype(np.float32)  # a slanted surface, then a step
+    truth = np.broadcast_to(truth, (rows, cols)).copy()
+    disp = truth + rng.choice([-1.5, 0.0, 1.5], (rows, cols), p=[0.15, 0.7, 0.15]).astype(np.float32)
+    disp[20:30, 10:20] = -1.0  # a hole: the matcher's checks rejected it
+    disp[45:50, 60:70] = 0.0  # a block of cells at a low valid disparity
+    before = np.abs(disp - truth) > 1.0
+    out = disp.copy()
+    surface_median(out, -0.5)
+    assert (out[20:30, 10:20] == -1.0).all()  # holes stay holes
+    inner = (np.abs(np.arange(cols) - 40) > 3)[None, :] & (disp > -0.5) & (np.abs(disp - truth) <= 2.0)
+    assert before[inner].mean() > 0.25 and (np.abs(out - truth) > 1.0)[inner].mean() < 0.02  # the scatter goes
+    # across the depth edge the other surface is more than MEDIAN_SAME_SURFACE away: no cell takes it
+    assert 30.0 - (10.0 + 0.05 * 39) > MEDIAN_SAME_SURFACE
+    assert (out[:, :40] < 15.0).all()
+    assert (np.abs(out[:, 41:] - 30.0)[disp[:, 41:] > 20.0] <= 1.5).all()
+    assert (out[45:50, 60:70] == 0.0).all()  # a block of its own is a surface of its own
+    # the holes' cells do not pull their neighbours: the median next to a hole is the surface's
+    ring = np.zeros_like(inner)
+    ring[18:32, 8:22] = True
+    ring[20:30, 10:20] = False
+    assert (np.abs(out - truth)[ring & inner] <= 1.0).all()
