@@ -480,7 +480,7 @@ def match_pair_sgm(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config,
     del L1, L2
     n_ends = drop_range_ends(disp, min_d, min_d + num_d - 1, min_d - 1.0) if opt.end_check else 0
     if opt.median:
-        surface_median(disp, min_d - 0.5)
+        surface_median(disp, min_d - 1.0)
     n_dense = int(np.count_nonzero(disp >= min_d))
     uv1, uv2, rows = pixel_matches(disp, min_d, grid, tv, size1, size2, opt.interpolate)
     del disp
