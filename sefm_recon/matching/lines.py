@@ -127,10 +127,10 @@ def project(K: np.ndarray, Rc: np.ndarray, r: np.ndarray):
 
 
 @njit(cache=True)
-def project_polar(P, basis, cos_phi, sin_phi, alpha):
+def project_polar(P, basis, cos_phi, sin_phi, ca, sa):
     """Pixel ``(u, v, z)`` of the camera-1-axes ray ``(phi, alpha)`` projected by ``P`` (3, 3),
-    ``u, v`` COLMAP positions, valid where ``z > 0`` (in front of the camera)."""
-    ca, sa = np.cos(alpha), np.sin(alpha)
+    given the cosines and sines of ``phi`` and ``alpha`` (``ca``, ``sa``); ``u, v`` COLMAP
+    positions, valid where ``z > 0`` (in front of the camera)."""
     x0 = ca * basis[0, 0] + sa * (cos_phi * basis[1, 0] + sin_phi * basis[2, 0])
     x1 = ca * basis[0, 1] + sa * (cos_phi * basis[1, 1] + sin_phi * basis[2, 1])
     x2 = ca * basis[0, 2] + sa * (cos_phi * basis[1, 2] + sin_phi * basis[2, 2])
@@ -144,10 +144,11 @@ def project_polar(P, basis, cos_phi, sin_phi, alpha):
 def _remap_maps(P, basis, phi, alpha, mx, my):
     """cv2.remap's maps (float32, pixel centres at integers) of the rays ``(phi[r], alpha[c])``
     projected by ``P`` (3, 3, camera-1 axes to pixels); rays behind the camera map far outside."""
+    ca, sa = np.cos(alpha), np.sin(alpha)  # each column's, once for all rows
     for r in prange(phi.shape[0]):
         cp, sp = np.cos(phi[r]), np.sin(phi[r])
         for c in range(alpha.shape[0]):
-            u, v, z = project_polar(P, basis, cp, sp, alpha[c])
+            u, v, z = project_polar(P, basis, cp, sp, ca[c], sa[c])
             if z > 1e-9:
                 mx[r, c] = u - 0.5
                 my[r, c] = v - 0.5
