@@ -247,6 +247,7 @@ class SgmConfig:
     bicubic: bool = True  #: bicubic line images (false: bilinear)
     interpolate: bool = True  #: read disparities back interpolated over the surface (false: nearest cell)
     median: bool = True  #: smooth the disparities by a 5x5 median on their surface (false: as SGM leaves them)
+    planes: bool = True  #: fill large plain regions whose matches lie on one plane (:mod:`.matching.planes`)
 
 
 @dataclass

@@ -61,6 +61,7 @@ SGM_ABLATIONS: dict[str, list[str]] = {
     "- bicubic line images (bilinear)": ["sgm.bicubic=false"],
     "- interpolated read-back at each pixel (nearest cell)": ["sgm.interpolate=false"],
     "- median over each surface": ["sgm.median=false"],
+    "- holes of plain planes filled": ["sgm.planes=false"],
 }
 
 #: Ablation rows of the sequential DP: each removes (or, marked +, adds) one stage beyond the paper.

@@ -43,7 +43,7 @@ class DenseMatches:
     uv1: np.ndarray  #: (N, 2)
     uv2: np.ndarray  #: (N, 2)
     score: np.ndarray  #: (N,) confidence in (0, 1]
-    line: np.ndarray  #: (N,) index of the epipolar line pair
+    line: np.ndarray  #: (N,) index of the epipolar line pair (-1: filled from a plane, :mod:`.planes`)
     xyz: np.ndarray  #: (N, 3) triangulated points, camera-1 frame
     counts: dict = field(default_factory=dict)
     timings: dict = field(default_factory=dict)

@@ -12,7 +12,8 @@ estimates at its ends (:func:`drop_range_ends`) and on windows without signal
 The disparities are then read back at every pixel of image 1 (:func:`pixel_matches`):
 the pixel's own ray gives its row and column, the disparity there its ray in image 2,
 so each pixel holds one match exactly on its epipolar line whatever the sampling of the
-line images; points are triangulated as for SeFM's own matches.
+line images; points are triangulated as for SeFM's own matches, and the holes of plain
+planes are filled (:mod:`.planes`).
 """
 
 from __future__ import annotations
@@ -34,6 +35,7 @@ from ..geometry.kernels import pixel_ray
 from ..geometry.triangulate import triangulate
 from ..geometry.two_view import TwoView
 from .lines import LineGrid, line_grid, line_images, pixel_grid, project_polar
+from .planes import fill_planes
 from .sefm import DenseMatches, depth_range
 
 logger = logging.getLogger(__name__)
@@ -111,6 +113,9 @@ MEDIAN_PASSES = 2
 #: own estimate: on its surface (the errors the median corrects lie within 1-3 columns); across
 #: a depth edge the window's majority is the other surface, and the cell keeps its estimate.
 MEDIAN_SAME_SURFACE = 3.0
+#: The confidence (``DenseMatches.score``) of a match filled from a plane (:mod:`.planes`): below
+#: SGM's own (1), so that the pose check tracks the matches SGM found first.
+PLANE_SCORE = 0.5
 #: Pixels of image 1 read back at a time: bounds the per-pixel arrays to about 100 MB.
 _CHUNK_PIXELS = 1 << 20
 
@@ -502,16 +507,25 @@ def match_pair_sgm(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config,
     uv1, uv2, rows = pixel_matches(disp, min_d, grid, tv, size1, size2, opt.interpolate)
     del disp
     X, valid, _ = triangulate(tv.K1, tv.K2, tv.R, tv.t, uv1, uv2)
-    keep = np.flatnonzero(valid)
+    uv1, uv2, rows, X = uv1[valid], uv2[valid], rows[valid], X[valid]
+    score = np.ones(len(uv1))
+    n_planes = 0
+    if opt.planes:
+        pf = fill_planes(cv2.cvtColor(img1, cv2.COLOR_RGB2GRAY), size2, tv, uv1, uv2, X)
+        n_planes = len(pf.uv1)
+        # no line of the line images (-1), and a lower confidence than a match SGM found
+        uv1, uv2, X = np.concatenate([uv1, pf.uv1]), np.concatenate([uv2, pf.uv2]), np.concatenate([X, pf.xyz])
+        rows = np.concatenate([rows, np.full(n_planes, -1, rows.dtype)])
+        score = np.concatenate([score, np.full(n_planes, PLANE_SCORE)])
     timings["matching"] = time.perf_counter() - t0
     counts = {
         "line_pairs": int(len(grid.phi)),
         "samples": int(len(grid.phi) * grid.columns),
         "rough_matches": 0,
         "dense_matches": n_dense,
-        "valid_matches": int(len(keep)),
+        "valid_matches": int(len(uv1)),
     }
     logger.info("SGM (%s): %d line pairs, %d dense (%d more at the ends of the search and %d on windows without "
-                "signal dropped), %d valid", "4 full paths" if full else "3 directions", counts["line_pairs"], n_dense,
-                n_ends, n_flat, len(keep))
-    return DenseMatches(uv1[keep], uv2[keep], np.ones(len(keep)), rows[keep], X[keep], counts, timings)
+                "signal dropped), %d filled on plain planes, %d valid", "4 full paths" if full else "3 directions",
+                counts["line_pairs"], n_dense, n_ends, n_flat, n_planes, len(uv1))
+    return DenseMatches(uv1, uv2, score, rows, X, counts, timings)

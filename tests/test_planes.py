@@ -1,0 +1,98 @@
+"""Plain surfaces filled from their own matches (matching/planes.py), on known answers."""
+
+import numpy as np
+
+from sefm_recon.geometry.triangulate import triangulate
+from sefm_recon.geometry.two_view import TwoView
+from sefm_recon.matching.planes import fill_planes, plain_regions
+
+W, H, F = 240, 180, 300.0
+DISP = 12.0  # a frontal plane at depth F / DISP (unit baseline): x2 = x1 - DISP
+
+
+def _scene(seed=0):
+    """A lateral pair and image 1: a plain grey square framed by texture (its own region)."""
+    K = np.array([[F, 0, W / 2], [0, F, H / 2], [0, 0, 1.0]])
+    tv = TwoView(K, K, np.eye(3), np.array([-1.0, 0, 0]))
+    rng = np.random.default_rng(seed)
+    gray = rng.integers(0, 256, (H, W)).astype(np.uint8)
+    gray[20:160, 40:220] = 128
+    return tv, gray
+
+
+def _matches(tv, pixels, disp=DISP):
+    """Matches of pixel (x, y) index pairs on a frontal plane of parallax ``disp``, with their points."""
+    uv1 = pixels[:, ::-1] + 0.5
+    uv2 = uv1 - [disp, 0.0]
+    X, ok, _ = triangulate(tv.K1, tv.K2, tv.R, tv.t, uv1, uv2)
+    assert ok.all()
+    return uv1, uv2, X
+
+
+def _plain_pixels():
+    yy, xx = np.mgrid[24:156, 44:216]  # inside the square, clear of the region's edge
+    return np.column_stack([yy.ravel(), xx.ravel()])
+
+
+def test_a_plain_square_framed_by_texture_is_one_region():
+    _, gray = _scene()
+    labels, areas = plain_regions(gray)
+    inner = labels[24:156, 44:216]
+    assert len(np.unique(inner)) == 1 and inner[0, 0] > 0
+    assert areas[inner[0, 0]] >= (156 - 24) * (216 - 44)
+
+
+def test_the_holes_of_a_matched_plane_take_its_partners_on_their_epipolar_lines():
+    tv, gray = _scene()
+    rng = np.random.default_rng(1)
+    px = _plain_pixels()
+    hole = rng.random(len(px)) < 0.3
+    uv1, uv2, X = _matches(tv, px[~hole])
+    fill = fill_planes(gray, (W, H), tv, uv1, uv2, X)
+    assert fill.regions == 1
+    holes = {tuple(p) for p in (px[hole][:, ::-1] + 0.5)}
+    got = {tuple(p) for p in fill.uv1}
+    assert len(holes & got) >= 0.95 * len(holes)  # nearly every hole (the edge rows stay out)
+    assert not ({tuple(p) for p in uv1} & got)  # a matched pixel is never touched
+    assert np.abs(fill.uv2 - (fill.uv1 - [DISP, 0.0])).max() < 0.01  # the plane's partner
+    assert np.allclose(fill.xyz[:, 2], F / DISP, rtol=1e-3)
+
+
+def test_a_surface_beyond_the_matches_is_not_filled():
+    # the square's left part matched, its right part not at all: that part may be
+    # another surface, and only the strip next to the matches counts as holes
+    tv, gray = _scene()
+    px = _plain_pixels()
+    left = px[:, 1] < 150  # 55 % of the region
+    uv1, uv2, X = _matches(tv, px[left])
+    fill = fill_planes(gray, (W, H), tv, uv1, uv2, X)
+    assert len(fill.uv1) > 0  # the region's margins next to the matches
+    assert fill.uv1[:, 0].max() < 150 + 8  # within the hole window's reach of the matches
+
+
+def test_matches_split_over_two_depths_or_too_few_fill_nothing():
+    tv, gray = _scene()
+    rng = np.random.default_rng(2)
+    px = _plain_pixels()
+    px = px[rng.random(len(px)) < 0.7]
+    half = rng.random(len(px)) < 0.5
+    a, b = _matches(tv, px[half]), _matches(tv, px[~half], disp=DISP + 5)
+    split = [np.concatenate([x, y]) for x, y in zip(a, b)]
+    assert len(fill_planes(gray, (W, H), tv, *split).uv1) == 0
+    few = _matches(tv, px[rng.random(len(px)) < 0.3])  # 21 % of the region matched
+    assert len(fill_planes(gray, (W, H), tv, *few).uv1) == 0
+
+
+def test_a_hole_whose_partner_a_nearer_surface_covers_in_view_2_stays_empty():
+    tv, gray = _scene()
+    px = _plain_pixels()
+    hole = (px[:, 0] >= 80) & (px[:, 0] < 84) & (px[:, 1] >= 100) & (px[:, 1] < 104)
+    uv1, uv2, X = _matches(tv, px[~hole])
+    in_hole = lambda uv: (uv[:, 0] > 100) & (uv[:, 0] < 104) & (uv[:, 1] > 80) & (uv[:, 1] < 84)
+    assert in_hole(fill_planes(gray, (W, H), tv, uv1, uv2, X).uv1).sum() == 16
+    # a nearer surface (20 px more parallax) lands in image 2 where the hole's partners would
+    near = np.array([[y, x + 20] for y in range(80, 84) for x in range(100, 104)])
+    n1, n2, nX = _matches(tv, near, disp=DISP + 20)
+    fill = fill_planes(gray, (W, H), tv, np.concatenate([uv1, n1]), np.concatenate([uv2, n2]),
+                       np.concatenate([X, nX]))
+    assert in_hole(fill.uv1).sum() == 0
