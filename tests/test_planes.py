@@ -36,10 +36,12 @@ def _plain_pixels():
 
 def test_a_plain_square_framed_by_texture_is_one_region():
     _, gray = _scene()
-    labels, areas = plain_regions(gray)
+    labels, stats = plain_regions(gray)
     inner = labels[24:156, 44:216]
     assert len(np.unique(inner)) == 1 and inner[0, 0] > 0
-    assert areas[inner[0, 0]] >= (156 - 24) * (216 - 44)
+    left, top, width, height, area = stats[inner[0, 0]]
+    assert area >= (156 - 24) * (216 - 44)
+    assert 40 <= left <= 44 and 20 <= top <= 24 and left + width <= 220 and top + height <= 160
 
 
 def test_the_holes_of_a_matched_plane_take_its_partners_on_their_epipolar_lines():

@@ -70,7 +70,8 @@ class PlaneFill(NamedTuple):
 
 def plain_regions(gray: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Regions of ``gray`` (H, W) uint8 between its intensity edges (:data:`EDGE_GREY_PER_PX`),
-    4-connected: ``(labels (H, W) int32, areas (n,))``, label 0 the edges."""
+    4-connected: ``(labels (H, W) int32, stats (n, 5))``, label 0 the edges (area 0); ``stats``
+    as OpenCV's ``connectedComponentsWithStats`` gives them (left, top, width, height, area)."""
     g = cv2.GaussianBlur(gray.astype(np.float32), (0, 0), 1.0)
     # Sobel's 3x3 kernels weigh 8 grey levels per unit slope
     gx = cv2.Sobel(g, cv2.CV_32F, 1, 0) / 8.0
@@ -78,20 +79,35 @@ def plain_regions(gray: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     edge = (cv2.magnitude(gx, gy) > EDGE_GREY_PER_PX).astype(np.uint8)
     edge = cv2.dilate(edge, np.ones((3, 3), np.uint8))  # regions stop a pixel short of the edge
     n, labels, stats, _ = cv2.connectedComponentsWithStats(1 - edge, connectivity=4)
-    areas = stats[:, cv2.CC_STAT_AREA].copy()
-    areas[0] = 0  # the background label of connectedComponents is the edges
-    return labels, areas
+    stats[0, cv2.CC_STAT_AREA] = 0  # the background label of connectedComponents is the edges
+    return labels, stats
 
 
 @njit(cache=True)
-def _nearest_depth(uv2, z2, w2, h2):
-    """Per pixel of image 2 (h2, w2), the smallest camera-2 depth of the matches landing in it."""
-    zbuf = np.full((h2, w2), np.inf)
+def _region_of_matches(uv1, labels):
+    """The region label of each match's pixel in image 1 (N,) and the (H, W) mask of matched pixels."""
+    h, w = labels.shape
+    lab = np.empty(uv1.shape[0], np.int32)
+    matched = np.zeros((h, w), np.bool_)
+    for i in range(uv1.shape[0]):
+        x = int(uv1[i, 0])
+        y = int(uv1[i, 1])
+        lab[i] = labels[y, x]
+        matched[y, x] = True
+    return lab, matched
+
+
+@njit(cache=True)
+def _nearest_depth(uv2, X, R, t, w2, h2):
+    """Per pixel of image 2 (h2, w2), the smallest camera-2 depth (``R X + t``) of the matches landing in it."""
+    zbuf = np.full((h2, w2), np.inf, np.float32)
     for i in range(uv2.shape[0]):
         x = int(uv2[i, 0])
         y = int(uv2[i, 1])
-        if 0 <= x < w2 and 0 <= y < h2 and z2[i] < zbuf[y, x]:
-            zbuf[y, x] = z2[i]
+        if 0 <= x < w2 and 0 <= y < h2:
+            z = R[2, 0] * X[i, 0] + R[2, 1] * X[i, 1] + R[2, 2] * X[i, 2] + t[2]
+            if z < zbuf[y, x]:
+                zbuf[y, x] = z
     return zbuf
 
 
@@ -136,17 +152,16 @@ def fill_planes(gray1: np.ndarray, size2: tuple[int, int], tv, uv1: np.ndarray, 
     from ..geometry.triangulate import triangulate
 
     h, w = gray1.shape
-    labels, areas = plain_regions(gray1)
+    labels, stats = plain_regions(gray1)
+    areas = stats[:, cv2.CC_STAT_AREA]
     big = np.flatnonzero(areas >= MIN_REGION_SHARE * h * w)
     empty = PlaneFill(np.zeros((0, 2)), np.zeros((0, 2)), np.zeros((0, 3)), 0)
     if len(big) == 0 or len(uv1) == 0:
         return empty
-    px = uv1.astype(np.int64)  # pixel centres of image 1: its (column, row)
-    lab = labels[px[:, 1], px[:, 0]]
-    matched = np.zeros((h, w), bool)
-    matched[px[:, 1], px[:, 0]] = True
+    lab, matched = _region_of_matches(np.ascontiguousarray(uv1), labels)
     rng = np.random.default_rng(seed)
     add1, add2 = [], []
+    m = HOLE_WINDOW // 2
     for k in big:
         idx = np.flatnonzero(lab == k)
         if len(idx) < MIN_MATCHED_SHARE * areas[k] or len(idx) < 4:
@@ -157,19 +172,23 @@ def fill_planes(gray1: np.ndarray, size2: tuple[int, int], tv, uv1: np.ndarray, 
         if H is None:
             continue
         pred = cv2.perspectiveTransform(uv1[idx].reshape(-1, 1, 2), H).reshape(-1, 2)
-        if np.mean(np.linalg.norm(pred - uv2[idx], axis=1) <= 1.0) < MIN_PLANE_SUPPORT:
+        on_plane = np.linalg.norm(pred - uv2[idx], axis=1) <= 1.0
+        if np.mean(on_plane) < MIN_PLANE_SUPPORT:
             continue
-        # holes of the plane's matches, not a surface beyond them (MIN_HOLE_SUPPORT)
-        region = (labels == k).astype(np.float32)
-        on = np.zeros((h, w), np.float32)
-        inl = idx[np.linalg.norm(pred - uv2[idx], axis=1) <= 1.0]
-        on[px[inl, 1], px[inl, 0]] = 1.0
+        # holes of the plane's matches, not a surface beyond them (MIN_HOLE_SUPPORT), over the
+        # region's bounding box and the window's reach around it
+        x0, y0, bw, bh = stats[k, :4]
+        x0, y0, x1, y1 = max(x0 - m, 0), max(y0 - m, 0), min(x0 + bw + m, w), min(y0 + bh + m, h)
+        region = (labels[y0:y1, x0:x1] == k).astype(np.float32)
+        on = np.zeros_like(region)
+        inl = uv1[idx[on_plane]].astype(np.int64)
+        on[inl[:, 1] - y0, inl[:, 0] - x0] = 1.0
         win = (HOLE_WINDOW, HOLE_WINDOW)
         dense = cv2.boxFilter(on, -1, win, normalize=False) >= MIN_HOLE_SUPPORT * cv2.boxFilter(region, -1, win, normalize=False)
-        ys, xs = np.nonzero((region > 0) & ~matched & dense)
+        ys, xs = np.nonzero((region > 0) & ~matched[y0:y1, x0:x1] & dense)
         if len(ys) == 0:
             continue
-        p1 = np.column_stack([xs + 0.5, ys + 0.5])
+        p1 = np.column_stack([xs + x0 + 0.5, ys + y0 + 0.5])
         p2 = _on_lines(tv.F, p1, cv2.perspectiveTransform(p1.reshape(-1, 1, 2), H).reshape(-1, 2))
         inside = (p2[:, 0] >= 0) & (p2[:, 0] < size2[0]) & (p2[:, 1] >= 0) & (p2[:, 1] < size2[1])
         add1.append(p1[inside])
@@ -178,8 +197,8 @@ def fill_planes(gray1: np.ndarray, size2: tuple[int, int], tv, uv1: np.ndarray, 
         return empty
     a1, a2 = np.concatenate(add1), np.concatenate(add2)
     # hidden in view 2: a nearer surface's match lands where the fill would
-    z2 = X @ tv.R[2] + tv.t[2]
-    zbuf = _nearest_depth(np.ascontiguousarray(uv2), np.ascontiguousarray(z2), *size2)
+    zbuf = _nearest_depth(np.ascontiguousarray(uv2), np.ascontiguousarray(X), np.ascontiguousarray(tv.R, np.float64),
+                          np.asarray(tv.t, np.float64), *size2)
     Xa, va, _ = triangulate(tv.K1, tv.K2, tv.R, tv.t, a1, a2)
     za = Xa @ tv.R[2] + tv.t[2]
     keep = va & ~_hidden(np.ascontiguousarray(a2), np.ascontiguousarray(za), zbuf, HIDDEN_DEPTH_SHARE)

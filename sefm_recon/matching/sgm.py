@@ -507,12 +507,15 @@ def match_pair_sgm(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config,
     uv1, uv2, rows = pixel_matches(disp, min_d, grid, tv, size1, size2, opt.interpolate)
     del disp
     X, valid, _ = triangulate(tv.K1, tv.K2, tv.R, tv.t, uv1, uv2)
-    uv1, uv2, rows, X = uv1[valid], uv2[valid], rows[valid], X[valid]
+    if not valid.all():  # (copying millions of matches costs a few tenths of a second)
+        keep = np.flatnonzero(valid)
+        uv1, uv2, rows, X = uv1[keep], uv2[keep], rows[keep], X[keep]
     score = np.ones(len(uv1))
     n_planes = 0
     if opt.planes:
         pf = fill_planes(cv2.cvtColor(img1, cv2.COLOR_RGB2GRAY), size2, tv, uv1, uv2, X)
         n_planes = len(pf.uv1)
+    if n_planes:
         # no line of the line images (-1), and a lower confidence than a match SGM found
         uv1, uv2, X = np.concatenate([uv1, pf.uv1]), np.concatenate([uv2, pf.uv2]), np.concatenate([X, pf.xyz])
         rows = np.concatenate([rows, np.full(n_planes, -1, rows.dtype)])
