@@ -34,6 +34,7 @@ from ..geometry.epipolar import ray_angles
 from ..geometry.kernels import pixel_ray
 from ..geometry.triangulate import triangulate
 from ..geometry.two_view import TwoView
+from ..io.images import to_gray
 from .lines import LineGrid, line_grid, line_images, pixel_grid, project_polar
 from .planes import fill_planes
 from .sefm import DenseMatches, depth_range
@@ -513,7 +514,7 @@ def match_pair_sgm(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config,
     score = np.ones(len(uv1))
     n_planes = 0
     if opt.planes:
-        pf = fill_planes(cv2.cvtColor(img1, cv2.COLOR_RGB2GRAY), size2, tv, uv1, uv2, X)
+        pf = fill_planes(to_gray(img1), size2, tv, uv1, uv2, X)
         n_planes = len(pf.uv1)
     if n_planes:
         # no line of the line images (-1), and a lower confidence than a match SGM found
