@@ -450,7 +450,7 @@ def run_pair_task(task: PairTask) -> dict:
     R = task.R2 @ task.R1.T
     t = task.t2 - R @ task.t1
     cfg = copy.deepcopy(task.cfg)
-    cfg.output.mesh = False  # one mesh per pair would be wasted work
+    cfg.output.mesh = "none"  # one mesh per pair would be wasted work
     try:
         res = reconstruct_pair(img1, img2, task.camera1, task.camera2, cfg, pose=(R, t), progress=False,
                                names=(task.name1, task.name2))

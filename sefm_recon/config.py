@@ -274,18 +274,25 @@ class OutputConfig:
               "original pixels", unit="px", range=Range(MIN_MAX_SIZE, MAX_SIDE, special=(0, "full size")),
         why="a copy under 256 px keeps under 65 000 pixels, too few for a dense cloud worth a mesh; above "
             "100 000 px (beyond any camera's sensor) the value would mean full size, like 0")
-    mesh: bool = _setting(True, "write mesh.ply")
+    mesh: str = _setting(
+        "grid", "mesh.ply: grid, camera 1's pixel grid joined into triangles where the surface is continuous "
+                "(only what was matched; fast); poisson, open3d's screened Poisson surface of the points (smooth, "
+                "closes holes; seconds more); none, no mesh.ply (true and false mean grid and none)",
+        choices=("grid", "poisson", "none"))
     poisson_depth: int = _setting(
-        9, "octree depth of the screened Poisson mesh: at most 2^depth cells along each axis", unit="levels",
+        9, "output.mesh = poisson: octree depth of the surface, at most 2^depth cells along each axis",
+        unit="levels",
         range=Range(5, 12),
         why="open3d refuses depth 1 and prints hundreds of warnings at depths 2 to 4; at 12 the grid has 4096 "
             "cells a side, finer than even output.mesh_max_points' maximum of 10 million points can fill")
     density_quantile: float = _setting(
-        0.05, "mesh vertices whose Poisson density is below this quantile are trimmed (0 = keep all)",
+        0.05, "output.mesh = poisson: vertices whose Poisson density is below this quantile are trimmed "
+              "(0 = keep all)",
         range=Range(0, 1, high_open=True),
         why="a quantile: at 1 every vertex would be trimmed")
     mesh_max_points: int = _setting(
-        150000, "the mesh is built from at most this many points (voxel-averaged); its time grows with them",
+        150000, "the grid mesh has at most this many vertices (each the mean of a cell of points); the Poisson "
+                "mesh is built from at most this many points (voxel-averaged), its time grows with them",
         unit="points", range=Range(100, MAX_POINTS),
         why="Poisson needs at least 100 oriented points for a surface; 10 million is more than a pair at the "
             "default working size gives (3200 x 2400 pixels, one match each)")
@@ -400,6 +407,10 @@ def _coerce(value: Any, kind: type, key: str) -> Any:
     raise InputError(f"config key {key}: expected {kind.__name__}, got {value!r}")
 
 
+#: Keys that were booleans once: what ``true`` and ``false`` still mean there.
+_BOOL_ALIASES: dict[str, dict[bool, str]] = {"output.mesh": {True: "grid", False: "none"}}
+
+
 def _apply(cfg: Config, section: str, key: str, value: Any, internal: bool = False) -> None:
     sub = getattr(cfg, section, None)
     if sub is None or not dataclasses.is_dataclass(sub):
@@ -411,6 +422,9 @@ def _apply(cfg: Config, section: str, key: str, value: Any, internal: bool = Fal
         known = ", ".join(user) or "none: its keys are internal constants of the matchers"
         raise InputError(f"unknown config key {section}.{key} (keys: {known})")
     kind = {"int": int, "float": float, "bool": bool, "str": str}[types[key]] if isinstance(types[key], str) else types[key]
+    aliases = _BOOL_ALIASES.get(f"{section}.{key}")
+    if aliases is not None and (isinstance(value, bool) or str(value).lower() in ("true", "false")):
+        value = aliases[value if isinstance(value, bool) else str(value).lower() == "true"]
     setattr(sub, key, _coerce(value, kind, f"{section}.{key}"))
 
 

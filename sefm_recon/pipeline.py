@@ -166,9 +166,9 @@ def reconstruct_pair(
         notes={"pose": tv.source, **notes, **two_view_notes},
         sift_uv1=v1.to_original(tv.kp1), sift_uv2=v2.to_original(tv.kp2), image1=img1, image2=img2,
     )
-    if cfg.output.mesh:
+    if cfg.output.mesh != "none":
         t0 = time.perf_counter()
-        result.mesh = _mesh(result, cfg)
+        result.mesh = _mesh(result, cfg, uv1w, v1.image.shape[:2], float(tv.K1[0, 0]))
         timings["mesh"] = time.perf_counter() - t0
     return result
 
@@ -390,12 +390,20 @@ def _check_unknown_camera(check: dict, focal: dict) -> None:
             "\"PINHOLE W H fx fy cx cy\"")
 
 
-def _mesh(result: PairResult, cfg: Config):
-    from .reconstruct.mesh import poisson_mesh
+def _mesh(result: PairResult, cfg: Config, uv1: np.ndarray, shape: tuple[int, int], focal: float):
+    """The mesh of ``cfg.output.mesh`` (grid or poisson) from the result's points; None when there are
+    too few. ``uv1`` are the points' positions in camera 1's working image of ``shape`` and focal length."""
+    from .reconstruct.mesh import grid_mesh, poisson_mesh
 
     if result.normals is None or len(result.xyz) < 100:
         logger.warning("too few points (%d) for a mesh: mesh.ply not written", len(result.xyz))
         return None
+    if cfg.output.mesh == "grid":
+        try:
+            return grid_mesh(uv1, result.xyz, result.rgb, shape, focal, max_vertices=cfg.output.mesh_max_points)
+        except ValueError as e:
+            logger.warning("no mesh: %s; mesh.ply not written", e)
+            return None
     # open3d holds the interpreter for the whole Poisson solve: a Ctrl-C takes effect when it ends.
     logger.info("meshing %d points (Ctrl-C stops the run once the mesh is done)", len(result.xyz))
     return poisson_mesh(result.xyz, result.normals, result.rgb, depth=cfg.output.poisson_depth,

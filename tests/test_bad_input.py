@@ -178,7 +178,7 @@ CASES = [
     ("--set unknown key", ["{a}", "{b}", "--set", "rough.speed=3"], ["unknown config key rough.speed"]),
     ("--set wrong type (int)", ["{a}", "{b}", "--set", "output.mesh_max_points=wide"],
      ["output.mesh_max_points: expected int"]),
-    ("--set wrong type (bool)", ["{a}", "{b}", "--set", "output.mesh=maybe"], ["output.mesh: expected bool"]),
+    ("--set wrong choice", ["{a}", "{b}", "--set", "output.mesh=maybe"], ["output.mesh: one of grid, poisson, none"]),
     ("--set not finite", ["{a}", "{b}", "--set", "geometry.ransac_max_error=nan"], ["expected a finite number"]),
     ("--set out of range", ["{a}", "{b}", "--set", "output.poisson_depth=0"], ["output.poisson_depth: must be >= 5"]),
     ("--set out of range (float)", ["{a}", "{b}", "--set", "sift.max_ratio=1.5"], ["sift.max_ratio: must be"]),

@@ -9,7 +9,7 @@ import pycolmap
 import pytest
 
 from sefm_recon.geometry.two_view import TwoView, epipolar_distances
-from sefm_recon.io.ply import read_ply_header
+from sefm_recon.io.ply import read_mesh, read_ply_header, read_point_cloud
 
 from .conftest import SAMPLE
 
@@ -56,6 +56,19 @@ def test_pair_writes_every_output(demo_out):
     props = [name for _, name in header["elements"]["vertex"]["properties"]]
     assert props == ["x", "y", "z", "nx", "ny", "nz", "red", "green", "blue"]
     assert header["elements"]["vertex"]["count"] == counts["points"]
+
+
+def test_pair_mesh_is_the_points_surface(demo_out):
+    """mesh.ply (the default grid mesh): a coloured sheet facing camera 1 (at the origin) on the points."""
+    v, f, c, n = read_mesh(demo_out / "mesh.ply")
+    xyz, _, _ = read_point_cloud(demo_out / "points.ply")
+    assert 10_000 <= len(v) <= 150_000 and len(f) >= len(v)  # output.mesh_max_points bounds the vertices
+    assert c is not None and n is not None
+    facing = np.einsum("ij,ij->i", np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]), -v[f[:, 0]])
+    assert np.mean(facing > 0) > 0.99
+    # each vertex, a mean of nearby points, lies within the points' depth range
+    lo, hi = np.percentile(xyz[:, 2], [0, 100])
+    assert lo <= v[:, 2].min() and v[:, 2].max() <= hi
 
 
 def test_pair_recovers_the_true_pose_and_epipolar_geometry(demo_out):

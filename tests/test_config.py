@@ -17,7 +17,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 def test_overrides_are_typed():
     cfg = load_config(None, ["rough.jump_threshold=5", "output.mesh=false", "dense.band_max=32"], internal=True)
-    assert cfg.rough.jump_threshold == 5.0 and cfg.output.mesh is False and cfg.dense.band_max == 32
+    assert cfg.rough.jump_threshold == 5.0 and cfg.output.mesh == "none" and cfg.dense.band_max == 32
 
 
 def test_at_most_25_user_settings_and_internal_constants_are_refused():
