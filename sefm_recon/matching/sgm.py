@@ -334,9 +334,10 @@ def _read_back(disp, row_of, g, basis, K1inv, P2, w1, y0, w2, h2, uv2, row):
 
 
 @njit(parallel=True, cache=True)
-def _compact(uv2, row, w, y0):
-    """The matched pixels of a chunk (``row >= 0``) in pixel order: ``(uv1, uv2, row)`` packed,
-    one parallel pass per image row (counting, then writing at each row's offset)."""
+def _compact(uv2, row, w, y0, out1, out2, out_r, m0):
+    """The matched pixels of a chunk (``row >= 0``) in pixel order, packed into ``out1``,
+    ``out2`` (M, 2) and ``out_r`` (M,) from index ``m0``: one parallel pass per image row
+    (counting, then writing at each row's offset). Returns the index after the last."""
     nrows = row.shape[0] // w
     count = np.zeros(nrows + 1, np.int64)
     for r in prange(nrows):
@@ -345,10 +346,7 @@ def _compact(uv2, row, w, y0):
             if row[j] >= 0:
                 c += 1
         count[r + 1] = c
-    start = np.cumsum(count)
-    out1 = np.empty((start[-1], 2))
-    out2 = np.empty((start[-1], 2))
-    out_r = np.empty(start[-1], np.int64)
+    start = np.cumsum(count) + m0
     for r in prange(nrows):
         m = start[r]
         for j in range(r * w, (r + 1) * w):
@@ -359,7 +357,7 @@ def _compact(uv2, row, w, y0):
                 out2[m, 1] = uv2[j, 1]
                 out_r[m] = row[j]
                 m += 1
-    return out1, out2, out_r
+    return start[-1]
 
 
 def pixel_matches(disp: np.ndarray, min_disparity: float, grid: LineGrid, tv: TwoView,
@@ -388,19 +386,17 @@ def pixel_matches(disp: np.ndarray, min_disparity: float, grid: LineGrid, tv: Tw
     K1inv = np.ascontiguousarray(np.linalg.inv(tv.K1))
     w, h = size1
     rows_per_chunk = max(1, _CHUNK_PIXELS // w)
-    out1, out2, out_r = [], [], []
+    # numpy's outputs, one match a pixel at most, filled chunk by chunk and cut at the end
+    # (arrays of numba's or a concatenation cost their size in fresh pages twice over)
+    out1, out2, out_r = np.empty((w * h, 2)), np.empty((w * h, 2)), np.empty(w * h, np.int64)
+    uv2 = np.empty((min(h, rows_per_chunk) * w, 2))
+    row = np.empty(min(h, rows_per_chunk) * w, np.int64)
+    m = 0
     for y0 in range(0, h, rows_per_chunk):
         n = w * (min(h, y0 + rows_per_chunk) - y0)
-        uv2 = np.empty((n, 2))
-        row = np.empty(n, np.int64)
-        _read_back(disp, row_of, g, basis, K1inv, P2, w, y0, float(size2[0]), float(size2[1]), uv2, row)
-        a, b, c = _compact(uv2, row, w, y0)
-        out1.append(a)
-        out2.append(b)
-        out_r.append(c)
-    if len(out1) == 1:
-        return out1[0], out2[0], out_r[0]
-    return np.concatenate(out1), np.concatenate(out2), np.concatenate(out_r)
+        _read_back(disp, row_of, g, basis, K1inv, P2, w, y0, float(size2[0]), float(size2[1]), uv2[:n], row[:n])
+        m = _compact(uv2[:n], row[:n], w, y0, out1, out2, out_r, m)
+    return out1[:m], out2[:m], out_r[:m]
 
 
 def _sgbm(L1: np.ndarray, L2: np.ndarray, min_d: int, num_d: int, uniqueness: int, *, full_paths: bool = True,
