@@ -147,12 +147,14 @@ def _setup_logging(quiet: bool, verbose: bool) -> None:
             logging.getLogger(name).setLevel(logging.WARNING)
 
 
-def _say_if_compiling(method: str) -> None:
+def _say_if_compiling(method: str, mesh: str = "none") -> None:
     """One line before a first run compiles the numba kernels, which it otherwise does in silence."""
     from .io.kernel_cache import cold_kernels, kernel_sources
 
-    # the semi-global matcher (OpenCV) uses no kernel of matching/; the sequential DP is mostly kernels there
-    sources = [s for s in kernel_sources() if method != "sgm" or s.parent.name != "matching"]
+    # the semi-global matcher (OpenCV) uses no kernel of matching/; the sequential DP is mostly kernels there;
+    # the mesh's kernels run only for the grid mesh
+    sources = [s for s in kernel_sources() if (method != "sgm" or s.parent.name != "matching")
+               and (mesh == "grid" or s.parent.name != "reconstruct" or s.name != "mesh.py")]
     cold = cold_kernels(sources)
     if cold:
         dp = any(s.parent.name == "matching" for s in cold)
@@ -167,7 +169,7 @@ def _cmd_pair(args) -> int:
     cfg = load_config(args.config, args.overrides)
     if args.max_size is not None:
         cfg.output.max_size = args.max_size
-    _say_if_compiling(cfg.dense.method)
+    _say_if_compiling(cfg.dense.method, cfg.output.mesh)
     report = run_pair(args.image1, args.image2, args.output, cfg, camera=args.camera, camera2=args.camera2,
                       overwrite=args.overwrite, progress=not args.quiet and cfg.output.progress)
     c = report["counts"]

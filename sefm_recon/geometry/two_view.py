@@ -8,6 +8,11 @@ so cameras here are 3x3 matrices ``K``. The relative pose is COLMAP's
 from __future__ import annotations
 
 import logging
+import os
+import pickle
+import signal
+import sys
+import warnings
 from dataclasses import dataclass, field
 
 import cv2
@@ -74,15 +79,25 @@ def extract_sift(gray: np.ndarray, max_features: int = 8192, max_size: int = 0,
         xy (N, 2) float64 keypoint positions (COLMAP pixel convention) and
         (N, 128) float32 descriptors.
     """
+    small, factor = _sift_input(gray, max_size)
+    xy, desc = _colmap_sift(small, max_features, upsample_max_size)
+    return xy * factor, desc
+
+
+def _sift_input(gray: np.ndarray, max_size: int) -> tuple[np.ndarray, np.ndarray]:
+    """The image SIFT works on (:func:`sift_scale`) and the factor (2,) back to ``gray``'s pixels."""
     h, w = gray.shape[:2]
-    factor = np.ones(2)
     s = sift_scale(w, h, max_size)
-    if s < 1.0:
-        # Relative pose needs well spread inliers, not full resolution, and SIFT's
-        # cost grows with the pixels. COLMAP pixel edges scale exactly.
-        ws, hs = max(1, round(w * s)), max(1, round(h * s))
-        gray = cv2.resize(gray, (ws, hs), interpolation=cv2.INTER_AREA)
-        factor = np.array([w / ws, h / hs])
+    if s >= 1.0:
+        return np.ascontiguousarray(gray), np.ones(2)
+    # Relative pose needs well spread inliers, not full resolution, and SIFT's
+    # cost grows with the pixels. COLMAP pixel edges scale exactly.
+    ws, hs = max(1, round(w * s)), max(1, round(h * s))
+    return cv2.resize(gray, (ws, hs), interpolation=cv2.INTER_AREA), np.array([w / ws, h / hs])
+
+
+def _colmap_sift(gray: np.ndarray, max_features: int, upsample_max_size: int) -> tuple[np.ndarray, np.ndarray]:
+    """pycolmap's CPU SIFT on ``gray`` as it is: positions (N, 2) float64 and descriptors (N, 128) float32."""
     opts = pycolmap.FeatureExtractionOptions()
     opts.sift.max_num_features = int(max_features)
     # COLMAP starts at octave -1 (the image upsampled 2x) for the finest
@@ -92,9 +107,76 @@ def extract_sift(gray: np.ndarray, max_features: int = 8192, max_size: int = 0,
     opts.use_gpu = False
     extractor = pycolmap.FeatureExtractor.create(opts, device=pycolmap.Device.cpu)
     keypoints, descriptors = extractor.extract_from_uint8_array(np.ascontiguousarray(gray))
-    xy = pycolmap.keypoints_to_matrix(keypoints)[:, :2].astype(np.float64) * factor
-    desc = np.asarray(descriptors.data, dtype=np.float32)
-    return xy, desc
+    xy = pycolmap.keypoints_to_matrix(keypoints)[:, :2].astype(np.float64)
+    return xy, np.asarray(descriptors.data, dtype=np.float32)
+
+
+def _can_fork() -> bool:
+    """A child process can run beside this one: Linux (fork is safe for what the child does) and two or more cores."""
+    return sys.platform.startswith("linux") and hasattr(os, "fork") and len(os.sched_getaffinity(0)) > 1
+
+
+def extract_sift_pair(gray1: np.ndarray, gray2: np.ndarray, max_features: int = 8192, max_size: int = 0,
+                      upsample_max_size: int = 0):
+    """:func:`extract_sift` of both images, image 2's in a child process where one can run beside this one.
+
+    COLMAP's CPU SIFT runs on one core and holds Python's interpreter lock, so two
+    threads take as long as one image after the other; a child forked for image 2
+    gives the same features in half the time on two cores (the bench pair: 1.5 s
+    against 2.8 s). The child only runs pycolmap on its copy of the image and sends
+    the result back through a pipe; it dies with a Ctrl-C or with this process. Where
+    it cannot run (not Linux, one core) or fails, image 2 is done here.
+    Returns ``((xy1, desc1), (xy2, desc2))`` as :func:`extract_sift`'s.
+    """
+    small1, f1 = _sift_input(gray1, max_size)
+    small2, f2 = _sift_input(gray2, max_size)
+    pid = None
+    if _can_fork():
+        r, w = os.pipe()
+        for stream in (sys.stdout, sys.stderr):  # a child must not write the parent's buffered text again
+            stream.flush()
+        with warnings.catch_warnings():  # Python >= 3.12 warns of fork in a threaded process (the child
+            warnings.simplefilter("ignore", DeprecationWarning)  # takes no lock: pycolmap and a pipe only)
+            pid = os.fork()
+        if pid == 0:  # the child
+            try:
+                os.close(r)
+                for sig in (signal.SIGINT, signal.SIGTERM):
+                    signal.signal(sig, signal.SIG_DFL)
+                _die_with_parent()
+                with os.fdopen(w, "wb") as out:
+                    pickle.dump(_colmap_sift(small2, max_features, upsample_max_size), out, protocol=5)
+            finally:
+                os._exit(0)
+        os.close(w)
+    try:
+        xy1, d1 = _colmap_sift(small1, max_features, upsample_max_size)
+        second = None
+        if pid is not None:
+            with os.fdopen(r, "rb") as inp:
+                try:
+                    second = pickle.load(inp)
+                except (EOFError, pickle.UnpicklingError):  # the child failed: image 2 here
+                    logger.debug("SIFT child process gave no result; image 2 in this process")
+            os.waitpid(pid, 0)
+            pid = None
+        if second is None:
+            second = _colmap_sift(small2, max_features, upsample_max_size)
+    finally:
+        if pid is not None:  # interrupted: the child goes too
+            os.kill(pid, signal.SIGKILL)
+            os.waitpid(pid, 0)
+    return (xy1 * f1, d1), (second[0] * f2, second[1])
+
+
+def _die_with_parent() -> None:
+    """Linux: this (child) process gets SIGKILL when its parent ends (prctl PR_SET_PDEATHSIG)."""
+    try:
+        import ctypes
+
+        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG = 1
+    except (OSError, AttributeError):
+        pass
 
 
 def match_descriptors(desc1: np.ndarray, desc2: np.ndarray, max_ratio: float = 0.8) -> np.ndarray:
@@ -133,8 +215,7 @@ def sift_correspondences(gray1, gray2, max_features: int = 8192, max_ratio: floa
     Raises :class:`InputError` when an image has fewer than ``min_features``
     SIFT features (a textureless image: nothing to estimate geometry from).
     """
-    xy1, d1 = extract_sift(gray1, max_features, max_size, upsample_max_size)
-    xy2, d2 = extract_sift(gray2, max_features, max_size, upsample_max_size)
+    (xy1, d1), (xy2, d2) = extract_sift_pair(gray1, gray2, max_features, max_size, upsample_max_size)
     for xy, name in ((xy1, names[0]), (xy2, names[1])):
         if len(xy) < min_features:
             raise InputError(

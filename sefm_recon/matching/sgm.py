@@ -412,8 +412,11 @@ def _sgbm(L1: np.ndarray, L2: np.ndarray, min_d: int, num_d: int, uniqueness: in
                                  speckleWindowSize=SPECKLE_WINDOW if speckle else 0,
                                  speckleRange=SPECKLE_RANGE,
                                  mode=cv2.STEREO_SGBM_MODE_HH4 if full else cv2.STEREO_SGBM_MODE_SGBM_3WAY)
-    # fixed point, 4 fractional bits; invalid: -1 (below min_d once shifted)
-    return sgbm.compute(L1, L2).astype(np.float32) / 16.0 + min_d, full
+    # fixed point, 4 fractional bits; invalid: -1 (below min_d once shifted); one float copy
+    disp = sgbm.compute(L1, L2).astype(np.float32)
+    disp *= 1.0 / 16.0
+    disp += min_d
+    return disp, full
 
 
 def coarse_range(img1: np.ndarray, img2: np.ndarray, tv: TwoView, grid: LineGrid, cfg: Config,
