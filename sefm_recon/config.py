@@ -240,7 +240,7 @@ class SgmConfig:
     uniqueness: int = 10  #: best cost this many percent below the second best (0 = off)
     speckle: bool = True  #: drop small islands of disparity (OpenCV's speckle filter)
     sift_range: bool = True  #: search the SIFT inliers' parallax (false: their depths x2 and /2)
-    range_margin: float = 0.25  #: the parallax range widened by this share of its span on each side
+    range_margin: float = 0.0  #: the parallax range widened by this share of its span on each side (0: 8 columns)
     end_check: bool = True  #: drop estimates within a column of the ends of the search (its edge, not a minimum found)
     flat_check: bool = True  #: drop estimates whose window in image 1 has one value (no signal: clipped, or fill)
     coarse_range: bool = True  #: without 8 SIFT inliers, search what a coarse pass finds (false: every depth)
