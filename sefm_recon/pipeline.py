@@ -11,6 +11,7 @@ import copy
 import json
 import logging
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -453,19 +454,27 @@ def write_pair_outputs(result: PairResult, cfg: Config, folder: Path, names: tup
     from .io.ply import write_mesh, write_point_cloud
     from .io.visualize import draw_matches, write_image
 
+    def small_files():
+        np.savez(folder / "matches.npz", uv1=result.uv1.astype(np.float32),
+                 uv2=result.uv2.astype(np.float32), score=result.score.astype(np.float32))
+        if result.mesh is not None:
+            write_mesh(folder / "mesh.ply", *result.mesh)
+        if result.image1 is not None and result.image2 is not None:
+            write_image(folder / "matches.png", draw_matches(result.image1, result.image2, result.uv1, result.uv2))
+
     t0 = time.perf_counter()
     folder = Path(folder)
-    np.savez(folder / "matches.npz", uv1=result.uv1.astype(np.float32),
-                        uv2=result.uv2.astype(np.float32), score=result.score.astype(np.float32))
-    write_point_cloud(folder / "points.ply", result.xyz, result.rgb, result.normals)
-    if result.mesh is not None:
-        v, f, c, n = result.mesh
-        write_mesh(folder / "mesh.ply", v, f, c, n)
-    write_two_view_model(folder / "sparse", result.camera1, result.camera2, names[0], names[1], result.R,
-                         result.t, result.uv1, result.uv2, result.xyz, result.rgb,
-                         max_points=cfg.output.sparse_max_points)
-    if result.image1 is not None and result.image2 is not None:
-        write_image(folder / "matches.png", draw_matches(result.image1, result.image2, result.uv1, result.uv2))
+    # open3d, numpy's file writes and OpenCV let go of Python's lock, the COLMAP model's
+    # points are added one by one in Python: the files are written side by side
+    # (the bench pair: 0.6 s instead of 1.0 s)
+    with ThreadPoolExecutor(max_workers=2) as pool:
+        jobs = [pool.submit(write_point_cloud, folder / "points.ply", result.xyz, result.rgb, result.normals),
+                pool.submit(small_files)]
+        write_two_view_model(folder / "sparse", result.camera1, result.camera2, names[0], names[1], result.R,
+                             result.t, result.uv1, result.uv2, result.xyz, result.rgb,
+                             max_points=cfg.output.sparse_max_points)
+        for job in jobs:
+            job.result()
     result.timings["write"] = time.perf_counter() - t0
     report = build_report(result, cfg, names)
     (folder / "report.json").write_text(json.dumps(report, indent=2))
