@@ -58,9 +58,11 @@ def run_sefm(v1, v2, cfg, write: bool = True) -> tuple[dict, dict]:
     """One timed SeFM run (as ``sefm-recon pair --camera``); returns (timings, counts) and the matches."""
     from .pipeline import reconstruct_pair, write_pair_outputs
 
+    cam1, cam2 = v1.camera(1), v2.camera(2)
+    cam1.has_prior_focal_length = cam2.has_prior_focal_length = True  # the true cameras, as --camera gives them
     reset_peak_memory()
     t0 = time.perf_counter()
-    res = reconstruct_pair(v1.image, v2.image, v1.camera(1), v2.camera(2), cfg)
+    res = reconstruct_pair(v1.image, v2.image, cam1, cam2, cfg)
     if write:
         with tempfile.TemporaryDirectory() as tmp:
             write_pair_outputs(res, cfg, Path(tmp), (v1.name, v2.name))
