@@ -58,6 +58,7 @@ SGM_ABLATIONS: dict[str, list[str]] = {
     "+ range margin of a quarter span (8 columns alone)": ["sgm.range_margin=0.25"],
     "- estimates at the ends of the search dropped": ["sgm.end_check=false"],
     "- estimates on windows of one value dropped": ["sgm.flat_check=false"],
+    "- estimates whose window in image 2 reaches beyond it dropped": ["sgm.outside_check=false"],
     "- bicubic line images (bilinear)": ["sgm.bicubic=false"],
     "- interpolated read-back at each pixel (nearest cell)": ["sgm.interpolate=false"],
     "- median over each surface": ["sgm.median=false"],

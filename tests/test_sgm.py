@@ -84,6 +84,43 @@ def test_line_images_of_a_shifted_image_are_shifted_rows():
     assert abs(float(L2[r, left - 3]) - float(L1[r, c])) > abs(value2 - float(L1[r, c]))
 
 
+def test_image_2s_spans_hold_only_its_own_pixels():
+    # forward motion: image 2's lines end at its border, inside the line image
+    tv = _two_view(np.eye(3), [0.0, 0.0, -1.0])
+    grid = line_grid(tv, (320, 240), (320, 240))
+    grid.pad = 10
+    width = grid.pad + grid.columns + 10
+    flat = np.full((240, 320), 200, np.uint8)
+    for bicubic in (True, False):
+        _, L2, span2 = line_images(flat, flat, tv, grid, width, shift2=5, bicubic=bicubic, spans=True)
+        inside = np.arange(width)[None, :]
+        inside = (inside >= span2[:, :1]) & (inside <= span2[:, 1:])
+        assert inside.sum() > 0.5 * L2.size
+        assert (L2[inside] == 200).all()  # no cell of a span blends in the 0 beyond image 2's edge
+        # and each span is as long as it can be: the cells next to it do (where they are in the line image)
+        rows = np.flatnonzero((span2[:, 0] > 0) & (span2[:, 0] <= span2[:, 1]))
+        assert len(rows) and (L2[rows, span2[rows, 0] - 1] != 200).mean() > 0.9
+
+
+def test_windows_beyond_image_2_are_dropped():
+    from sefm_recon.matching.sgm import BLOCK, drop_outside_windows
+
+    half = BLOCK // 2
+    span2 = np.array([[10, 40], [5, 4]])  # row 1 holds none of image 2
+    x, shift = 50, 5
+    # partner column x - (d - shift): 11.4 and 38.6 put a window cell beyond the span
+    partners = np.array([10 + half - 0.6, 10 + half - 0.4, 40 - half + 0.4, 40 - half + 0.6, 25.0])
+    disp = np.full((2, 60), -1.0, np.float32)
+    disp[0, x - 2:x + 3] = np.arange(x - 2, x + 3) + shift - partners
+    disp[1, 20] = 12.0
+    before = disp.copy()
+    assert drop_outside_windows(disp, span2, shift, -1.0) == 3
+    assert list(disp[0, x - 2:x + 3] == -1.0) == [True, False, False, True, False]
+    assert disp[1, 20] == -1.0
+    kept = disp > -1.0
+    np.testing.assert_array_equal(disp[kept], before[kept])
+
+
 def test_a_scale_change_about_the_epipole_is_a_shift_of_columns():
     # forward motion: a point at angle alpha from the baseline moves to about s * alpha;
     # in columns that is the same shift log(s) / u_step wherever the point lies

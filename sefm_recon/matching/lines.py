@@ -158,17 +158,22 @@ def _remap_maps(P, basis, phi, alpha, mx, my):
 
 
 def line_images(img1: np.ndarray, img2: np.ndarray, tv: TwoView, grid: LineGrid, width: int, shift2: int = 0,
-                bicubic: bool = True):
+                bicubic: bool = True, spans: bool = False):
     """Both images resampled (bicubic, else bilinear) onto the grid's rows and ``width`` columns,
     image 2's shifted: its column ``c`` holds the grid's column ``c - shift2``, so that a
     match ``x2 = x1 - d`` lies at ``x1 - (d - shift2)`` in the line images.
 
     Returns ``(L1, L2)``, each (rows, width[, channels]) of the input dtype; cells
-    whose ray leaves an image or points behind it are 0.
+    whose ray leaves an image or points behind it are 0. With ``spans``, also image
+    2's: (rows, 2) int64 first and last column of each row whose interpolation reads
+    image 2's pixels alone (none of the 0 beyond its edge; first > last: none).
     """
     interpolation = cv2.INTER_CUBIC if bicubic else cv2.INTER_LINEAR
+    # pixels beyond the sample's (cv2 coordinates) that the interpolation reads on each side
+    reach = (1, 2) if bicubic else (0, 1)
     out = []
-    for img, K, Rc, shift in ((img1, tv.K1, np.eye(3), 0), (img2, tv.K2, tv.R.T, shift2)):
+    span2 = np.zeros((len(grid.phi), 2), np.int64)
+    for k, (img, K, Rc, shift) in enumerate(((img1, tv.K1, np.eye(3), 0), (img2, tv.K2, tv.R.T, shift2))):
         alpha = grid.alpha(np.arange(width) - shift)
         L = np.zeros((len(grid.phi), width) + img.shape[2:], img.dtype)
         P = np.ascontiguousarray(K @ Rc.T)
@@ -181,5 +186,15 @@ def line_images(img1: np.ndarray, img2: np.ndarray, tv: TwoView, grid: LineGrid,
             # Bicubic: it blurs less than bilinear where samples fall between pixels
             # (real pairs: +0.006 at 1 px).
             L[r0:r0 + len(phi)] = cv2.remap(img, mx, my, interpolation, borderMode=cv2.BORDER_CONSTANT)
+            if spans and k == 1:
+                h, w = img.shape[:2]
+                inside = ((np.floor(mx) - reach[0] >= 0) & (np.floor(mx) + reach[1] <= w - 1)
+                          & (np.floor(my) - reach[0] >= 0) & (np.floor(my) + reach[1] <= h - 1))
+                # a row is a line through the epipole: its cells inside the (convex) image are one run
+                any_in = inside.any(axis=1)
+                span2[r0:r0 + len(phi), 0] = np.where(any_in, inside.argmax(axis=1), width)
+                span2[r0:r0 + len(phi), 1] = np.where(any_in, width - 1 - inside[:, ::-1].argmax(axis=1), -1)
         out.append(L)
+    if spans:
+        return out[0], out[1], span2
     return out[0], out[1]
