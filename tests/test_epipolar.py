@@ -136,3 +136,35 @@ def test_sift_upsamples_small_photos_only():
     assert len(up) > 1.5 * len(at0), (len(up), len(at0))
     same, _ = extract_sift(gray, 8192, 0, upsample_max_size=319)  # longer than the limit: octave 0
     assert len(same) == len(at0)
+
+
+@pytest.mark.parametrize("fork", ["child", "fork fails", "child fails"])
+def test_sift_of_a_pair_side_by_side_is_each_image_s_own(monkeypatch, fork):
+    """Image 2's SIFT in a child process gives its own features exactly; where no child can run
+    or the child gives nothing, image 2 is done in this process with the same result."""
+    import os
+
+    import sefm_recon.geometry.two_view as two_view
+    from sefm_recon.synthetic import render_scene
+
+    views = render_scene(seed=5, width=480, height=360, style="classic").views
+    g1, g2 = (cv2.cvtColor(v.image, cv2.COLOR_RGB2GRAY) for v in views[:2])
+    expected = [two_view.extract_sift(g, 8192, 400, 0) for g in (g1, g2)]
+    monkeypatch.setattr(two_view, "_can_fork", lambda: True)
+    if fork == "fork fails":
+        def no_fork():
+            raise OSError("no process")
+        monkeypatch.setattr(os, "fork", no_fork)
+    if fork == "child fails":  # the child dies before it writes (here: its SIFT raises)
+        real = two_view._colmap_sift
+        parent = os.getpid()
+
+        def failing(*args):
+            if os.getpid() != parent:
+                raise RuntimeError("child")
+            return real(*args)
+        monkeypatch.setattr(two_view, "_colmap_sift", failing)
+    got = two_view.extract_sift_pair(g1, g2, 8192, 400, 0)
+    for (xy, desc), (xy_e, desc_e) in zip(got, expected):
+        np.testing.assert_array_equal(xy, xy_e)
+        np.testing.assert_array_equal(desc, desc_e)

@@ -134,10 +134,16 @@ def extract_sift_pair(gray1: np.ndarray, gray2: np.ndarray, max_features: int = 
     if _can_fork():
         r, w = os.pipe()
         for stream in (sys.stdout, sys.stderr):  # a child must not write the parent's buffered text again
-            stream.flush()
+            if stream is not None:
+                stream.flush()
         with warnings.catch_warnings():  # Python >= 3.12 warns of fork in a threaded process (the child
             warnings.simplefilter("ignore", DeprecationWarning)  # takes no lock: pycolmap and a pipe only)
-            pid = os.fork()
+            try:
+                pid = os.fork()
+            except OSError:  # no process to be had (a limit, memory): image 2 here
+                os.close(r)
+                os.close(w)
+                pid = None
         if pid == 0:  # the child
             try:
                 os.close(r)
@@ -148,12 +154,14 @@ def extract_sift_pair(gray1: np.ndarray, gray2: np.ndarray, max_features: int = 
                     pickle.dump(_colmap_sift(small2, max_features, upsample_max_size), out, protocol=5)
             finally:
                 os._exit(0)
-        os.close(w)
+        if pid is not None:
+            os.close(w)
+    reader = os.fdopen(r, "rb") if pid is not None else None  # closed on every way out
     try:
         xy1, d1 = _colmap_sift(small1, max_features, upsample_max_size)
         second = None
-        if pid is not None:
-            with os.fdopen(r, "rb") as inp:
+        if reader is not None:
+            with reader as inp:
                 try:
                     second = pickle.load(inp)
                 except (EOFError, pickle.UnpicklingError):  # the child failed: image 2 here
@@ -166,6 +174,7 @@ def extract_sift_pair(gray1: np.ndarray, gray2: np.ndarray, max_features: int = 
         if pid is not None:  # interrupted: the child goes too
             os.kill(pid, signal.SIGKILL)
             os.waitpid(pid, 0)
+            reader.close()
     return (xy1 * f1, d1), (second[0] * f2, second[1])
 
 
