@@ -188,8 +188,9 @@ def line_images(img1: np.ndarray, img2: np.ndarray, tv: TwoView, grid: LineGrid,
             L[r0:r0 + len(phi)] = cv2.remap(img, mx, my, interpolation, borderMode=cv2.BORDER_CONSTANT)
             if spans and k == 1:
                 h, w = img.shape[:2]
-                inside = ((np.floor(mx) - reach[0] >= 0) & (np.floor(mx) + reach[1] <= w - 1)
-                          & (np.floor(my) - reach[0] >= 0) & (np.floor(my) + reach[1] <= h - 1))
+                fx, fy = np.floor(mx), np.floor(my)
+                inside = ((fx - reach[0] >= 0) & (fx + reach[1] <= w - 1)
+                          & (fy - reach[0] >= 0) & (fy + reach[1] <= h - 1))
                 # a row is a line through the epipole: its cells inside the (convex) image are one run
                 any_in = inside.any(axis=1)
                 span2[r0:r0 + len(phi), 0] = np.where(any_in, inside.argmax(axis=1), width)

@@ -241,6 +241,13 @@ def _joined(za, zb, tol):
 
 
 @njit(cache=True)
+def _put(tris, n, a, b, c):
+    """Triangle ``(a, b, c)`` as row ``n`` of ``tris``; returns the next row."""
+    tris[n, 0], tris[n, 1], tris[n, 2] = a, b, c
+    return n + 1
+
+
+@njit(cache=True)
 def _grid_triangles(z, has, slope, step):
     """Two triangles a cell of four vertices (one where a corner is missing), each
     kept where its edges join one surface; wound so that they face camera 1."""
@@ -263,18 +270,14 @@ def _grid_triangles(z, has, slope, step):
             # the diagonal whose ends are closer in depth (the one a fold runs along)
             if bc and (not ad or abs(zb - zc) <= abs(za - zd)):
                 if ab and ac:
-                    tris[n, 0], tris[n, 1], tris[n, 2] = a, c, b
-                    n += 1
+                    n = _put(tris, n, a, c, b)
                 if bd and cd:
-                    tris[n, 0], tris[n, 1], tris[n, 2] = b, c, d
-                    n += 1
+                    n = _put(tris, n, b, c, d)
             elif ad:
                 if ab and bd:
-                    tris[n, 0], tris[n, 1], tris[n, 2] = a, d, b
-                    n += 1
+                    n = _put(tris, n, a, d, b)
                 if ac and cd:
-                    tris[n, 0], tris[n, 1], tris[n, 2] = a, c, d
-                    n += 1
+                    n = _put(tris, n, a, c, d)
     return tris[:n]
 
 
