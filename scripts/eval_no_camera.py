@@ -118,7 +118,10 @@ def print_table(rows: list[dict]) -> None:
     for r in rows:
         if "refused" in r:
             why = re.search(r"a median ([0-9.]+) px", r["refused"])
-            short = f"tracks {why.group(1)} px off the lines" if why else r["refused"].split(":")[0]
+            kept = re.search(r"explains a median ([0-9]+) % of its inliers", r["refused"])
+            short = (f"tracks {why.group(1)} px off the lines" if why else
+                     f"pose not determined: {kept.group(1)} % kept under resampling" if kept else
+                     r["refused"].split(":")[0])
             print(f"| {r['pair']} | refused ({short}) | | | | | | | |")
             continue
         p = f"{r['p1']:.3f} | {r['c1']:.3f}" if "p1" in r else " | "

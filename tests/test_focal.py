@@ -108,3 +108,78 @@ def test_an_ambiguous_geometry_is_refused(small_scene, monkeypatch):
     monkeypatch.setattr(pipeline, "estimate_two_view", true_estimate)  # the right pose passes the same check
     res = pipeline.reconstruct_pair(v1.image, v2.image, *cams, cfg)
     assert res.notes["geometry_check"]["explained_share"] > 0.95
+
+
+def _matches(rng, K, R, t, n, size=(640, 480)):
+    """``n`` correspondences of random scene points seen by camera 1 at the origin and camera 2 at (R, t)."""
+    xy1 = rng.uniform([20, 20], [size[0] - 20, size[1] - 20], (n, 2))
+    X = np.c_[xy1, np.ones(n)] @ np.linalg.inv(K).T * rng.uniform(3.0, 8.0, (n, 1))
+    x2 = (X @ R.T + t) @ K.T
+    return xy1, x2[:, :2] / x2[:, 2:]
+
+
+def _poses():
+    return [(rotation(r), np.asarray(t, float) / np.linalg.norm(t))
+            for r, t in (([2.0, -8.0, 1.0], [-1.0, 0.1, 0.2]), ([-6.0, 3.0, 4.0], [0.3, -1.0, 0.1]),
+                         ([5.0, 9.0, -3.0], [0.2, 0.4, -1.0]), ([-3.0, -5.0, 8.0], [1.0, 0.6, 0.3]))]
+
+
+def test_a_pose_the_matches_determine_survives_their_resampling():
+    """150 matches of one pose among 50 random ones: the pose found again from any 80 % keeps its inliers."""
+    from sefm_recon.geometry.two_view import estimate_two_view, resampled_consensus
+
+    rng = np.random.default_rng(1)
+    K = focal_matrix(1.2, (640, 480))
+    (R, t), = _poses()[:1]
+    a, b = _matches(rng, K, R, t, 150)
+    a = np.r_[a, rng.uniform(0, 640, (50, 2))]
+    b = np.r_[b, rng.uniform(0, 480, (50, 2))]
+    tv = estimate_two_view(a, b, K, K, (640, 480), (640, 480))
+    assert len(tv.kp1) >= 140
+    assert resampled_consensus(a, b, tv, (640, 480), (640, 480)) > 0.95
+
+
+def test_a_chance_consensus_is_refused():
+    """Four groups of 30 matches, each of another pose: the pose RANSAC picks is one of four, and
+    the poses found again from resampled matches explain other groups: refused, whichever it picks."""
+    from sefm_recon import pipeline
+    from sefm_recon.errors import InputError
+    from sefm_recon.geometry.two_view import estimate_two_view, resampled_consensus
+
+    rng = np.random.default_rng(2)
+    K = focal_matrix(1.2, (640, 480))
+    groups = [_matches(rng, K, R, t, 30) for R, t in _poses()]
+    a, b = np.concatenate([g[0] for g in groups]), np.concatenate([g[1] for g in groups])
+    tv = estimate_two_view(a, b, K, K, (640, 480), (640, 480), min_inliers=20)
+    assert 25 <= len(tv.kp1) <= 40  # one group's (and a few of the others' by chance)
+    assert resampled_consensus(a, b, tv, (640, 480), (640, 480)) < pipeline.CONSENSUS_MIN_SHARE
+    with pytest.raises(InputError, match="geometry of the pair is ambiguous: .* is not determined by the matches"):
+        pipeline._check_consensus(tv, a, b, (640, 480), (640, 480), 2.0, True)
+    with pytest.raises(InputError, match="focal length could not be found: .* give the camera with --camera"):
+        pipeline._check_consensus(tv, a, b, (640, 480), (640, 480), 2.0, False)
+
+
+def test_the_command_line_refuses_a_chance_consensus(small_scene, tmp_path, monkeypatch, capsys):
+    """`sefm-recon pair` on SIFT matches of four poses: exit 2, one line that says so, no output."""
+    import cv2
+
+    from sefm_recon import cli, pipeline
+
+    v1, v2 = small_scene.views[0], small_scene.views[1]
+    paths = []
+    for name, v in (("a.png", v1), ("b.png", v2)):
+        assert cv2.imwrite(str(tmp_path / name), cv2.cvtColor(v.image, cv2.COLOR_RGB2BGR))
+        paths.append(str(tmp_path / name))
+    h, w = v1.image.shape[:2]
+    K = v1.K
+    rng = np.random.default_rng(3)
+    groups = [_matches(rng, K, R, t, 30, (w, h)) for R, t in _poses()]
+    chance = np.concatenate([g[0] for g in groups]), np.concatenate([g[1] for g in groups])
+    monkeypatch.setattr(pipeline, "sift_correspondences", lambda *args, **kwargs: chance)
+    cam = f"PINHOLE {w} {h} {K[0, 0]:.9g} {K[1, 1]:.9g} {K[0, 2]:.9g} {K[1, 2]:.9g}"
+    out = tmp_path / "out"
+    code = cli.main(["pair", *paths, "-o", str(out), "--camera", cam, "-q", "--set", "geometry.min_inliers=20"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2
+    assert len(err) == 1 and "geometry of the pair is ambiguous" in err[0] and "not determined by the matches" in err[0]
+    assert not out.exists()
