@@ -118,7 +118,7 @@ def print_table(rows: list[dict]) -> None:
     for r in rows:
         if "refused" in r:
             why = re.search(r"a median ([0-9.]+) px", r["refused"])
-            kept = re.search(r"explains a median ([0-9]+) % of its inliers", r["refused"])
+            kept = re.search(r"explain a median ([0-9]+) % of its inliers", r["refused"])
             short = (f"tracks {why.group(1)} px off the lines" if why else
                      f"pose not determined: {kept.group(1)} % kept under resampling" if kept else
                      r["refused"].split(":")[0])

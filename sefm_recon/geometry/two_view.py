@@ -245,6 +245,21 @@ def sift_correspondences(gray1, gray2, max_features: int = 8192, max_ratio: floa
     return xy1[m[:, 0]], xy2[m[:, 1]]
 
 
+def calibrated_ransac(cam1: pycolmap.Camera, xy1: np.ndarray, cam2: pycolmap.Camera, xy2: np.ndarray,
+                      max_error: float, min_num_inliers: int, seed: int = 0) -> pycolmap.TwoViewGeometry:
+    """pycolmap's essential-matrix RANSAC and relative pose on the correspondences ``xy1[i] <-> xy2[i]``
+    (M, 2), with ``max_error`` (px) as inlier threshold and its random draws from ``seed``."""
+    opts = pycolmap.TwoViewGeometryOptions()
+    opts.compute_relative_pose = True
+    opts.ransac.max_error = float(max_error)
+    opts.ransac.random_seed = int(seed)
+    opts.min_num_inliers = int(min_num_inliers)
+    opts.detect_watermark = False
+    matches = np.stack([np.arange(len(xy1)), np.arange(len(xy1))], 1).astype(np.uint32)
+    return pycolmap.estimate_calibrated_two_view_geometry(
+        cam1, np.ascontiguousarray(xy1, np.float64), cam2, np.ascontiguousarray(xy2, np.float64), matches, opts)
+
+
 def estimate_two_view(
     xy1: np.ndarray,
     xy2: np.ndarray,
@@ -277,16 +292,7 @@ def estimate_two_view(
     cam2 = pinhole_camera(K2, *size2, 2)
 
     def ransac(min_num_inliers: int):
-        opts = pycolmap.TwoViewGeometryOptions()
-        opts.compute_relative_pose = True
-        opts.ransac.max_error = float(max_error)
-        opts.ransac.random_seed = 0
-        opts.min_num_inliers = int(min_num_inliers)
-        opts.detect_watermark = False
-        matches = np.stack([np.arange(len(xy1)), np.arange(len(xy1))], 1).astype(np.uint32)
-        tvg = pycolmap.estimate_calibrated_two_view_geometry(
-            cam1, np.ascontiguousarray(xy1, np.float64), cam2, np.ascontiguousarray(xy2, np.float64), matches, opts
-        )
+        tvg = calibrated_ransac(cam1, xy1, cam2, xy2, max_error, min_num_inliers)
         return tvg, np.asarray(tvg.inlier_matches, dtype=np.int64).reshape(-1, 2), int(tvg.config)
 
     def too_little_overlap(found: int) -> InputError:
@@ -436,16 +442,7 @@ def resampled_consensus(xy1: np.ndarray, xy2: np.ndarray, tv: TwoView, size1: tu
     shares = []
     for k in range(rounds):
         pick = np.sort(rng.choice(len(xy1), size=min(n, len(xy1)), replace=False))
-        opts = pycolmap.TwoViewGeometryOptions()
-        opts.compute_relative_pose = True
-        opts.ransac.max_error = float(max_error)
-        opts.ransac.random_seed = k + 1
-        opts.min_num_inliers = 5
-        opts.detect_watermark = False
-        idx = np.stack([np.arange(len(pick)), np.arange(len(pick))], 1).astype(np.uint32)
-        g = pycolmap.estimate_calibrated_two_view_geometry(
-            cam1, np.ascontiguousarray(xy1[pick], np.float64), cam2, np.ascontiguousarray(xy2[pick], np.float64),
-            idx, opts)
+        g = calibrated_ransac(cam1, xy1[pick], cam2, xy2[pick], max_error, 5, seed=k + 1)  # 5: an E's least
         if g.cam2_from_cam1 is None:
             shares.append(0.0)
             continue
