@@ -238,6 +238,7 @@ class SgmConfig:
     full_paths: bool = True  #: 4 full paths where the cost volume fits (false: always OpenCV's 3 directions)
     lr_check: bool = True  #: left-right consistency within one column
     uniqueness: int = 10  #: best cost this many percent below the second best (0 = off)
+    jump_penalty: int = 0  #: SGM's P2 as a multiple of channels x block area (0: chosen per pair, :func:`.matching.sgm.choose_jump_penalty`)
     speckle: bool = True  #: drop small islands of disparity (OpenCV's speckle filter)
     sift_range: bool = True  #: search the SIFT inliers' parallax (false: their depths x2 and /2)
     range_margin: float = 0.0  #: the parallax range widened by this share of its span on each side (0: 8 columns)
@@ -481,6 +482,7 @@ _INTERNAL_RANGES: dict[str, Range] = {key: Range(low, high, low_open) for key, (
     "validity.max_cost": (0, None, False),
     "validity.min_tri_angle_deg": (0, 90, False),
     "sgm.uniqueness": (0, 100, False),
+    "sgm.jump_penalty": (0, 1000, False),
     "sift.upsample_max_size": (0, MAX_SIDE, False),
     "sgm.range_margin": (0, 4, False),
 }.items()}

@@ -53,6 +53,7 @@ SGM_ABLATIONS: dict[str, list[str]] = {
     "- 4 full aggregation paths (OpenCV's 3 directions)": ["sgm.full_paths=false"],
     "- left-right check": ["sgm.lr_check=false"],
     "- uniqueness test": ["sgm.uniqueness=0"],
+    "- jump penalty chosen per pair (OpenCV's 32)": ["sgm.jump_penalty=32"],
     "- speckle filter": ["sgm.speckle=false"],
     "- search range from the SIFT parallax (their depths x2 and /2)": ["sgm.sift_range=false"],
     "+ range margin of a quarter span (8 columns alone)": ["sgm.range_margin=0.25"],

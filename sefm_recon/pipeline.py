@@ -8,6 +8,7 @@ returns a :class:`PairResult`, :func:`write_pair_outputs` writes it, and
 from __future__ import annotations
 
 import copy
+import dataclasses
 import json
 import logging
 import time
@@ -408,6 +409,9 @@ def _check_and_refine_pose(v1: WorkingView, v2: WorkingView, tv, dm: DenseMatche
                     "matching again", rot, tr)
         notes["pose_check"]["refined_change_deg"] = [round(rot, 3), round(tr, 3)]
         tv, final = new, after
+        if dm.counts.get("jump_penalty") and not cfg.sgm.jump_penalty:
+            # the scene's smoothness, chosen with the first pose, holds for the refined one
+            cfg = dataclasses.replace(cfg, sgm=dataclasses.replace(cfg.sgm, jump_penalty=dm.counts["jump_penalty"]))
         dm = _match(v1, v2, tv, cfg, progress)
     # the pose kept's distance from the tracks (None: too few tracks to judge it)
     notes["pose_check"]["final_pose_epipolar_px"] = None if np.isnan(final) else round(final, 3)

@@ -427,3 +427,59 @@ def test_the_surface_median_removes_scatter_and_keeps_depth_edges_and_holes():
     ring[18:32, 8:22] = True
     ring[20:30, 10:20] = False
     assert (np.abs(out - truth)[ring & inner] <= 1.0).all()
+
+
+@pytest.mark.parametrize("gains, expected", [
+    ({}, 32),  # every penalty keeps as many cells: OpenCV's stays
+    ({8: 1.2, 16: 1.1}, 8),  # fewer cells with each doubling: down to P1, no further
+    ({64: 1.1, 128: 1.2, 256: 1.3}, 128),  # more with each doubling: up to 4x OpenCV's, no further
+    ({16: 1.005, 8: 1.01}, 32),  # within the margin: counts that differ by noise move nothing
+    ({64: 1.05, 128: 1.055}, 64),  # the step to 128 gains less than the margin
+    ({16: 1.03, 64: 1.05, 8: 1.0}, 64),  # the better neighbour sets the direction
+])
+def test_the_jump_penalty_climbs_while_sgm_keeps_more_cells(gains, expected):
+    from sefm_recon.matching.sgm import JUMP_MARGIN, jump_ladder
+
+    assert JUMP_MARGIN == 0.01
+    asked = []
+
+    def count(jump):
+        asked.append(jump)
+        return int(100_000 * gains.get(jump, 1.0))
+
+    assert jump_ladder(count) == expected
+    assert 256 not in asked and 4 not in asked  # never beyond the bounds
+
+
+def _shifted_line_images(d, plain=slice(0, 0), noise=0.0, seed=0):
+    """Rectified 'line images' (240x400 RGB) of one texture, image 2's column c holding
+    image 1's column c + d (``d`` (240, 400) disparities, searched 0..48); the texture is
+    flat grey over the columns ``plain``, and Gaussian noise of ``noise`` grey levels is added."""
+    import cv2
+
+    rng = np.random.default_rng(seed)
+    h, w = d.shape
+    T = cv2.GaussianBlur(rng.uniform(0, 255, (h, w + 128)).astype(np.float32), (0, 0), 2.5)
+    T = cv2.normalize(T, None, 20, 235, cv2.NORM_MINMAX)
+    T[:, plain] = 128.0
+    x = np.arange(w, dtype=np.float32)[None, :] + 56
+    rows = np.repeat(np.arange(h, dtype=np.float32)[:, None], w, 1)
+    L1 = cv2.remap(T, np.repeat(x, h, 0), rows, cv2.INTER_LINEAR)
+    L2 = cv2.remap(T, (x + d).astype(np.float32), rows, cv2.INTER_LINEAR)
+    to_rgb = lambda a: np.repeat(np.clip(a + rng.normal(0, noise, a.shape), 0, 255).astype(np.uint8)[..., None], 3, 2)
+    return to_rgb(L1), to_rgb(L2)
+
+
+def test_the_jump_penalty_is_opencvs_on_texture_and_larger_on_a_plain_slanted_surface():
+    # On a textured surface every penalty finds it: OpenCV's 32 stays. On a plain surface
+    # (flat grey under noise of a grey level) slanted by 30 px across the image, only the
+    # paths carry the disparity across it, and a larger penalty keeps more of it through
+    # the checks (measured: 15,371 cells with 32, 17,148 with 64, 17,224 with 128).
+    from sefm_recon.matching.sgm import JUMP_PENALTY, choose_jump_penalty
+
+    opt = load_config(None, []).sgm
+    h, w = 240, 400
+    flat = np.full((h, w), 20.0)
+    assert choose_jump_penalty(*_shifted_line_images(flat), 48, opt) == JUMP_PENALTY
+    slant = 5.0 + 30.0 * np.arange(w)[None, :] / w + 0.0 * flat
+    assert choose_jump_penalty(*_shifted_line_images(slant, plain=slice(100, 400), noise=1.0), 48, opt) > JUMP_PENALTY

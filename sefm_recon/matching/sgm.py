@@ -22,7 +22,7 @@ import functools
 import logging
 import math
 import time
-from typing import NamedTuple
+from typing import Callable, NamedTuple
 
 import cv2
 import numpy as np
@@ -41,19 +41,39 @@ from .sefm import DenseMatches, depth_range
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["coarse_range", "drop_flat_windows", "drop_range_ends", "match_pair_sgm", "parallax_columns", "pixel_matches",
+__all__ = ["choose_jump_penalty", "jump_ladder", "coarse_range", "drop_flat_windows", "drop_range_ends", "match_pair_sgm", "parallax_columns", "pixel_matches",
            "search_range", "surface_median", "widen_range"]
 
 #: StereoSGBM's settings, those of the evaluation's planar SGBM peer: 5x5 blocks, OpenCV's
-#: recommended smoothness penalties P1 = 8 C B^2 and P2 = 32 C B^2 (C channels), a speckle
-#: filter over windows of 100 px within 2 disparities, and a left-right check within 1
-#: disparity; the uniqueness margin and the switches of the ablation are in ``cfg.sgm``.
-#: (3x3 blocks gained 0.005-0.01 on the real pairs but lost 0.02-0.09 on the noisier
-#: generated scenes.)
+#: recommended smoothness penalties P1 = 8 C B^2 and P2 = 32 C B^2 (C channels; the
+#: multiples of C B^2 below), a speckle filter over windows of 100 px within 2 disparities,
+#: and a left-right check within 1 disparity; the uniqueness margin and the switches of
+#: the ablation are in ``cfg.sgm``. (3x3 blocks gained 0.005-0.01 on the real pairs but
+#: lost 0.02-0.09 on the noisier generated scenes.)
 BLOCK = 5
 SPECKLE_WINDOW = 100
 SPECKLE_RANGE = 2
 LR_MAX_DIFF = 1
+STEP_PENALTY = 8
+JUMP_PENALTY = 32
+#: The jump penalty P2 is chosen per pair (:func:`choose_jump_penalty`): from OpenCV's 32 it
+#: doubles or halves while that keeps more cells through SGM's own checks (uniqueness,
+#: left-right, speckle, windows without signal, ends of the search), the penalty whose
+#: disparities agree with themselves best. The real pairs and the generated scenes want
+#: opposite smoothing: fixed at 16 the plain walls of Midd1 and Midd2 gain 0.04-0.08 of
+#: precision and 0.06-0.10 of coverage at 1 px and the generated scenes lose 0.03 / 0.09;
+#: fixed at 64 the generated scenes gain 0.02 / 0.05 and the real pairs lose 0.004 / 0.009
+#: (results.md). Between :data:`STEP_PENALTY` (a jump no dearer than a step of one
+#: disparity) and four times OpenCV's.
+JUMP_MIN, JUMP_MAX = STEP_PENALTY, 4 * JUMP_PENALTY
+#: A step is taken where it keeps more than this share more cells: between penalties that
+#: change no pixel's result by much (the textured real pairs: Cloth, Baby, Rocks, precision
+#: within 0.005 from 16 to 64) the counts differ by up to 0.9 %.
+JUMP_MARGIN = 0.01
+#: The cells are counted on copies of the line images reduced by this factor on both axes:
+#: an eighth of the cost volume (about a seventh of the full-size SGM's time each run).
+#: At 1/4 the counts no longer tell the walls apart (Midd1 kept 32).
+CHOICE_REDUCTION = 2
 #: Aggregation over the whole cost volume (OpenCV's MODE_HH4: four full paths, along the
 #: lines both ways and across them both ways) keeps the volume, about 4 bytes a cell: it
 #: is used up to this many cells (1 GB), the 3-direction mode (rows of the volume only)
@@ -432,14 +452,14 @@ def pixel_matches(disp: np.ndarray, min_disparity: float, grid: LineGrid, tv: Tw
 
 
 def _sgbm(L1: np.ndarray, L2: np.ndarray, min_d: int, num_d: int, uniqueness: int, *, full_paths: bool = True,
-          lr_check: bool = True, speckle: bool = True) -> tuple[np.ndarray, bool]:
+          lr_check: bool = True, speckle: bool = True, jump: int = JUMP_PENALTY) -> tuple[np.ndarray, bool]:
     """OpenCV's StereoSGBM (the settings above) over line images whose image 2 is shifted by
     ``min_d``, searching ``num_d`` columns: the disparity map (float32 columns, invalid below
     ``min_d``) and whether the four full paths ran (where the cost volume fits :data:`MAX_FULL_VOLUME`)."""
     cn = L1.shape[2] if L1.ndim == 3 else 1
     full = full_paths and L1.shape[0] * L1.shape[1] * num_d <= MAX_FULL_VOLUME
     sgbm = cv2.StereoSGBM_create(minDisparity=0, numDisparities=num_d, blockSize=BLOCK,
-                                 P1=8 * cn * BLOCK**2, P2=32 * cn * BLOCK**2,
+                                 P1=STEP_PENALTY * cn * BLOCK**2, P2=jump * cn * BLOCK**2,
                                  disp12MaxDiff=LR_MAX_DIFF if lr_check else -1, uniquenessRatio=uniqueness,
                                  speckleWindowSize=SPECKLE_WINDOW if speckle else 0,
                                  speckleRange=SPECKLE_RANGE,
@@ -449,6 +469,48 @@ def _sgbm(L1: np.ndarray, L2: np.ndarray, min_d: int, num_d: int, uniqueness: in
     disp *= 1.0 / 16.0
     disp += min_d
     return disp, full
+
+
+def jump_ladder(count: Callable[[int], int]) -> int:
+    """The jump penalty where ``count`` (penalty -> cells kept) stops growing: from
+    :data:`JUMP_PENALTY` towards the better of half and twice it, by factors of two while
+    each step keeps more than :data:`JUMP_MARGIN` more, within :data:`JUMP_MIN`..:data:`JUMP_MAX`."""
+    jump = JUMP_PENALTY
+    step = max((2.0, 0.5), key=lambda f: count(int(jump * f)))
+    while JUMP_MIN <= jump * step <= JUMP_MAX and count(int(jump * step)) > (1 + JUMP_MARGIN) * count(jump):
+        jump = int(jump * step)
+    return jump
+
+
+def choose_jump_penalty(L1: np.ndarray, L2: np.ndarray, num_d: int, opt) -> int:
+    """SGM's jump penalty P2 (a multiple of C B^2) for line images ``L1``, ``L2`` (image 2's
+    shifted so that the search is ``0..num_d``), with ``opt``'s (``cfg.sgm``) switches.
+
+    SGM runs on copies reduced :data:`CHOICE_REDUCTION` times, and :func:`jump_ladder`
+    follows the cells it keeps through its checks.
+    """
+    size = (L1.shape[1] // CHOICE_REDUCTION, L1.shape[0] // CHOICE_REDUCTION)
+    s1, s2 = (cv2.resize(L, size, interpolation=cv2.INTER_AREA) for L in (L1, L2))
+    nd = int(math.ceil(num_d / CHOICE_REDUCTION / 16.0)) * 16
+    # the aggregation the full-size run will use (four full paths only where its volume fits)
+    full = opt.full_paths and L1.shape[0] * L1.shape[1] * num_d <= MAX_FULL_VOLUME
+    kept = {}
+
+    def count(jump: int) -> int:
+        if jump not in kept:
+            disp, _ = _sgbm(s1, s2, 0, nd, opt.uniqueness, full_paths=full, lr_check=opt.lr_check,
+                            speckle=opt.speckle, jump=jump)
+            if opt.flat_check:
+                drop_flat_windows(disp, s1, -1.0)
+            if opt.end_check:
+                drop_range_ends(disp, 0, nd - 1, -1.0)
+            kept[jump] = int(np.count_nonzero(disp >= 0))
+        return kept[jump]
+
+    jump = jump_ladder(count)
+    logger.info("jump penalty %d: cells kept at 1/%d size %s", jump, CHOICE_REDUCTION,
+                ", ".join(f"{n} with {j}" for j, n in sorted(kept.items())))
+    return jump
 
 
 def coarse_range(img1: np.ndarray, img2: np.ndarray, tv: TwoView, grid: LineGrid, cfg: Config,
@@ -528,8 +590,9 @@ def match_pair_sgm(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config,
     logger.info("line images %dx%d, parallax %d..%d columns", width, len(grid.phi), min_d, min_d + num_d)
 
     t0 = time.perf_counter()
+    jump = opt.jump_penalty or choose_jump_penalty(L1, L2, num_d, opt)
     disp, full = _sgbm(L1, L2, min_d, num_d, opt.uniqueness, full_paths=opt.full_paths, lr_check=opt.lr_check,
-                       speckle=opt.speckle)
+                       speckle=opt.speckle, jump=jump)
     n_flat = drop_flat_windows(disp, L1, min_d - 1.0) if opt.flat_check else 0
     n_out = drop_outside_windows(disp, span2, min_d, min_d - 1.0) if opt.outside_check else 0
     del L1, L2
@@ -560,6 +623,7 @@ def match_pair_sgm(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config,
         "rough_matches": 0,
         "dense_matches": n_dense,
         "valid_matches": int(len(uv1)),
+        "jump_penalty": int(jump),  # SGM's P2 chosen for the pair (in units of C B^2)
     }
     logger.info("SGM (%s): %d line pairs, %d dense (%d more at the ends of the search, %d on windows without "
                 "signal and %d on windows beyond image 2 dropped), %d filled on plain planes, %d valid",
