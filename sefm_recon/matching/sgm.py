@@ -71,8 +71,13 @@ JUMP_MIN, JUMP_MAX = STEP_PENALTY, 4 * JUMP_PENALTY
 #: within 0.005 from 16 to 64) the counts differ by up to 0.9 %.
 JUMP_MARGIN = 0.01
 #: The cells are counted on copies of the line images reduced by this factor on both axes:
-#: an eighth of the cost volume (about a seventh of the full-size SGM's time each run).
-#: At 1/4 the counts no longer tell the walls apart (Midd1 kept 32).
+#: an eighth of the cost volume (the three runs took 0.38 s on the bench pair, 45 % of its
+#: full-size SGM). At 1/4 the counts no longer tell the walls apart (Midd1 and Midd2 got 64),
+#: so the quarter-size copies only say where the penalty does not matter: where half and
+#: twice 32 keep the same cells within the margin there, 32 stays without the half-size
+#: runs (41 of the 60 real cases, the bench pair: 0.38 -> 0.1 s; no generated scene; of the
+#: 41, only Monopoly rect and conv would have stepped at half size, to 128 and 64, which
+#: lose 0.001-0.007 of precision and 0.002-0.006 of coverage at 1 px there).
 CHOICE_REDUCTION = 2
 #: Aggregation over the whole cost volume (OpenCV's MODE_HH4: four full paths, along the
 #: lines both ways and across them both ways) keeps the volume, about 4 bytes a cell: it
@@ -482,16 +487,12 @@ def jump_ladder(count: Callable[[int], int]) -> int:
     return jump
 
 
-def choose_jump_penalty(L1: np.ndarray, L2: np.ndarray, num_d: int, opt) -> int:
-    """SGM's jump penalty P2 (a multiple of C B^2) for line images ``L1``, ``L2`` (image 2's
-    shifted so that the search is ``0..num_d``), with ``opt``'s (``cfg.sgm``) switches.
-
-    SGM runs on copies reduced :data:`CHOICE_REDUCTION` times, and :func:`jump_ladder`
-    follows the cells it keeps through its checks.
-    """
-    size = (L1.shape[1] // CHOICE_REDUCTION, L1.shape[0] // CHOICE_REDUCTION)
+def _cells_kept(L1: np.ndarray, L2: np.ndarray, num_d: int, opt, reduction: int) -> Callable[[int], int]:
+    """Jump penalty -> cells SGM keeps through ``opt``'s checks on copies of the line images
+    reduced ``reduction`` times on both axes (each penalty run once)."""
+    size = (L1.shape[1] // reduction, L1.shape[0] // reduction)
     s1, s2 = (cv2.resize(L, size, interpolation=cv2.INTER_AREA) for L in (L1, L2))
-    nd = int(math.ceil(num_d / CHOICE_REDUCTION / 16.0)) * 16
+    nd = int(math.ceil(num_d / reduction / 16.0)) * 16
     # the aggregation the full-size run will use (four full paths only where its volume fits)
     full = opt.full_paths and L1.shape[0] * L1.shape[1] * num_d <= MAX_FULL_VOLUME
     kept = {}
@@ -507,9 +508,32 @@ def choose_jump_penalty(L1: np.ndarray, L2: np.ndarray, num_d: int, opt) -> int:
             kept[jump] = int(np.count_nonzero(disp >= 0))
         return kept[jump]
 
+    count.kept = kept
+    return count
+
+
+def choose_jump_penalty(L1: np.ndarray, L2: np.ndarray, num_d: int, opt) -> int:
+    """SGM's jump penalty P2 (a multiple of C B^2) for line images ``L1``, ``L2`` (image 2's
+    shifted so that the search is ``0..num_d``), with ``opt``'s (``cfg.sgm``) switches.
+
+    SGM runs on copies reduced :data:`CHOICE_REDUCTION` times, and :func:`jump_ladder`
+    follows the cells it keeps through its checks. First, coarse to fine, on copies
+    reduced twice as much: where half and twice :data:`JUMP_PENALTY` keep the same cells as
+    it within :data:`JUMP_MARGIN`, the penalty does not matter to the pair and it is kept
+    without the larger copies.
+    """
+    coarse = _cells_kept(L1, L2, num_d, opt, 2 * CHOICE_REDUCTION)
+    base = max(coarse(JUMP_PENALTY), 1)
+    if all(abs(coarse(j) / base - 1) < JUMP_MARGIN for j in (JUMP_PENALTY // 2, 2 * JUMP_PENALTY)):
+        logger.info("jump penalty %d: cells kept at 1/%d size %s", JUMP_PENALTY, 2 * CHOICE_REDUCTION,
+                    ", ".join(f"{n} with {j}" for j, n in sorted(coarse.kept.items())))
+        return JUMP_PENALTY
+    logger.debug("cells kept at 1/%d size %s", 2 * CHOICE_REDUCTION,
+                 ", ".join(f"{n} with {j}" for j, n in sorted(coarse.kept.items())))
+    count = _cells_kept(L1, L2, num_d, opt, CHOICE_REDUCTION)
     jump = jump_ladder(count)
     logger.info("jump penalty %d: cells kept at 1/%d size %s", jump, CHOICE_REDUCTION,
-                ", ".join(f"{n} with {j}" for j, n in sorted(kept.items())))
+                ", ".join(f"{n} with {j}" for j, n in sorted(count.kept.items())))
     return jump
 
 
