@@ -238,7 +238,7 @@ class SgmConfig:
     full_paths: bool = True  #: 4 full paths where the cost volume fits (false: always OpenCV's 3 directions)
     lr_check: bool = True  #: left-right consistency within one column
     uniqueness: int = 10  #: best cost this many percent below the second best (0 = off)
-    jump_penalty: int = 0  #: SGM's P2 as a multiple of channels x block area (0: chosen per pair, :func:`.matching.sgm.choose_jump_penalty`)
+    jump_penalty: int = 0  #: SGM's P2 in units of channels x block area (0: chosen per pair, sgm.choose_jump_penalty)
     speckle: bool = True  #: drop small islands of disparity (OpenCV's speckle filter)
     sift_range: bool = True  #: search the SIFT inliers' parallax (false: their depths x2 and /2)
     range_margin: float = 0.0  #: the parallax range widened by this share of its span on each side (0: 8 columns)

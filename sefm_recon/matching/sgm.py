@@ -41,8 +41,8 @@ from .sefm import DenseMatches, depth_range
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["choose_jump_penalty", "jump_ladder", "coarse_range", "drop_flat_windows", "drop_range_ends", "match_pair_sgm", "parallax_columns", "pixel_matches",
-           "search_range", "surface_median", "widen_range"]
+__all__ = ["choose_jump_penalty", "coarse_range", "drop_flat_windows", "drop_range_ends", "jump_ladder",
+           "match_pair_sgm", "parallax_columns", "pixel_matches", "search_range", "surface_median", "widen_range"]
 
 #: StereoSGBM's settings, those of the evaluation's planar SGBM peer: 5x5 blocks, OpenCV's
 #: recommended smoothness penalties P1 = 8 C B^2 and P2 = 32 C B^2 (C channels; the
@@ -66,9 +66,11 @@ JUMP_PENALTY = 32
 #: (results.md). Between :data:`STEP_PENALTY` (a jump no dearer than a step of one
 #: disparity) and four times OpenCV's.
 JUMP_MIN, JUMP_MAX = STEP_PENALTY, 4 * JUMP_PENALTY
-#: A step is taken where it keeps more than this share more cells: between penalties that
-#: change no pixel's result by much (the textured real pairs: Cloth, Baby, Rocks, precision
-#: within 0.005 from 16 to 64) the counts differ by up to 0.9 %.
+#: A step is taken where it keeps more than this share more cells: on the textured real pairs
+#: (Cloth, Baby, Rocks), where no penalty stands out, the halved copies' counts at 16 and 64
+#: lie a median 0.4 % from 32's (at most 1.25 %, none of them more than 1 % above it); Midd1's
+#: and Midd2's at 16 lie 1.5-12 % above, the generated scenes' at 64 up to 12 %. Margins of
+#: 0.5 % and 2 % measured worse on both families (results.md).
 JUMP_MARGIN = 0.01
 #: The cells are counted on copies of the line images reduced by this factor on both axes:
 #: an eighth of the cost volume (the three runs took 0.38 s on the bench pair, 45 % of its
@@ -462,7 +464,7 @@ def _sgbm(L1: np.ndarray, L2: np.ndarray, min_d: int, num_d: int, uniqueness: in
     ``min_d``, searching ``num_d`` columns: the disparity map (float32 columns, invalid below
     ``min_d``) and whether the four full paths ran (where the cost volume fits :data:`MAX_FULL_VOLUME`)."""
     cn = L1.shape[2] if L1.ndim == 3 else 1
-    full = full_paths and L1.shape[0] * L1.shape[1] * num_d <= MAX_FULL_VOLUME
+    full = full_paths and _volume_fits(L1, num_d)
     sgbm = cv2.StereoSGBM_create(minDisparity=0, numDisparities=num_d, blockSize=BLOCK,
                                  P1=STEP_PENALTY * cn * BLOCK**2, P2=jump * cn * BLOCK**2,
                                  disp12MaxDiff=LR_MAX_DIFF if lr_check else -1, uniquenessRatio=uniqueness,
@@ -487,15 +489,23 @@ def jump_ladder(count: Callable[[int], int]) -> int:
     return jump
 
 
-def _cells_kept(L1: np.ndarray, L2: np.ndarray, num_d: int, opt, reduction: int) -> Callable[[int], int]:
-    """Jump penalty -> cells SGM keeps through ``opt``'s checks on copies of the line images
-    reduced ``reduction`` times on both axes (each penalty run once)."""
+def _volume_fits(L1: np.ndarray, num_d: int) -> bool:
+    """Whether the cost volume of line images shaped as ``L1`` over ``num_d`` columns fits
+    :data:`MAX_FULL_VOLUME` (OpenCV's four full paths; else its 3 directions)."""
+    return L1.shape[0] * L1.shape[1] * num_d <= MAX_FULL_VOLUME
+
+
+def _cells_kept(L1: np.ndarray, L2: np.ndarray, num_d: int, opt,
+                reduction: int) -> tuple[Callable[[int], int], dict[int, int]]:
+    """``(count, kept)``: ``count`` maps a jump penalty to the cells SGM keeps through ``opt``'s
+    checks on copies of the line images reduced ``reduction`` times on both axes (each
+    penalty run once); ``kept`` holds the counts run so far."""
     size = (L1.shape[1] // reduction, L1.shape[0] // reduction)
     s1, s2 = (cv2.resize(L, size, interpolation=cv2.INTER_AREA) for L in (L1, L2))
     nd = int(math.ceil(num_d / reduction / 16.0)) * 16
     # the aggregation the full-size run will use (four full paths only where its volume fits)
-    full = opt.full_paths and L1.shape[0] * L1.shape[1] * num_d <= MAX_FULL_VOLUME
-    kept = {}
+    full = opt.full_paths and _volume_fits(L1, num_d)
+    kept: dict[int, int] = {}
 
     def count(jump: int) -> int:
         if jump not in kept:
@@ -508,8 +518,7 @@ def _cells_kept(L1: np.ndarray, L2: np.ndarray, num_d: int, opt, reduction: int)
             kept[jump] = int(np.count_nonzero(disp >= 0))
         return kept[jump]
 
-    count.kept = kept
-    return count
+    return count, kept
 
 
 def choose_jump_penalty(L1: np.ndarray, L2: np.ndarray, num_d: int, opt) -> int:
@@ -522,18 +531,19 @@ def choose_jump_penalty(L1: np.ndarray, L2: np.ndarray, num_d: int, opt) -> int:
     it within :data:`JUMP_MARGIN`, the penalty does not matter to the pair and it is kept
     without the larger copies.
     """
-    coarse = _cells_kept(L1, L2, num_d, opt, 2 * CHOICE_REDUCTION)
+    def seen(kept: dict[int, int]) -> str:
+        return ", ".join(f"{n} with {j}" for j, n in sorted(kept.items()))
+
+    coarse, coarse_kept = _cells_kept(L1, L2, num_d, opt, 2 * CHOICE_REDUCTION)
     base = max(coarse(JUMP_PENALTY), 1)
     if all(abs(coarse(j) / base - 1) < JUMP_MARGIN for j in (JUMP_PENALTY // 2, 2 * JUMP_PENALTY)):
         logger.info("jump penalty %d: cells kept at 1/%d size %s", JUMP_PENALTY, 2 * CHOICE_REDUCTION,
-                    ", ".join(f"{n} with {j}" for j, n in sorted(coarse.kept.items())))
+                    seen(coarse_kept))
         return JUMP_PENALTY
-    logger.debug("cells kept at 1/%d size %s", 2 * CHOICE_REDUCTION,
-                 ", ".join(f"{n} with {j}" for j, n in sorted(coarse.kept.items())))
-    count = _cells_kept(L1, L2, num_d, opt, CHOICE_REDUCTION)
+    logger.debug("cells kept at 1/%d size %s", 2 * CHOICE_REDUCTION, seen(coarse_kept))
+    count, kept = _cells_kept(L1, L2, num_d, opt, CHOICE_REDUCTION)
     jump = jump_ladder(count)
-    logger.info("jump penalty %d: cells kept at 1/%d size %s", jump, CHOICE_REDUCTION,
-                ", ".join(f"{n} with {j}" for j, n in sorted(count.kept.items())))
+    logger.info("jump penalty %d: cells kept at 1/%d size %s", jump, CHOICE_REDUCTION, seen(kept))
     return jump
 
 
