@@ -41,7 +41,7 @@ from .sefm import DenseMatches, depth_range
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["choose_jump_penalty", "coarse_range", "drop_flat_windows", "drop_range_ends", "jump_ladder",
+__all__ = ["choose_jump_penalty", "coarse_range", "drop_flat_windows", "drop_range_ends", "flat_windows", "jump_ladder",
            "match_pair_sgm", "parallax_columns", "pixel_matches", "search_range", "surface_median", "widen_range"]
 
 #: StereoSGBM's settings, those of the evaluation's planar SGBM peer: 5x5 blocks, OpenCV's
@@ -241,6 +241,17 @@ def _drop_outside(disp, span2, shift, invalid, half):
     return count.sum()
 
 
+def flat_windows(L1: np.ndarray) -> np.ndarray:
+    """(rows, width) bool: the cells of line image 1 whose matching window (:data:`BLOCK`
+    square) holds a single value in every channel (:func:`drop_flat_windows`)."""
+    # uint8 max - min over the window, then any channel's (OpenCV's or: numpy's max over
+    # the channel axis took ten times as long)
+    spread = cv2.morphologyEx(L1, cv2.MORPH_GRADIENT, np.ones((BLOCK, BLOCK), np.uint8))
+    if spread.ndim == 3:
+        spread = functools.reduce(cv2.bitwise_or, [spread[..., c] for c in range(spread.shape[2])])
+    return spread == 0
+
+
 def drop_flat_windows(disp: np.ndarray, L1: np.ndarray, invalid: float) -> int:
     """Set the disparities whose matching window (:data:`BLOCK` square) in line image 1 has
     a single value in every channel to ``invalid``, in place; returns how many.
@@ -251,12 +262,7 @@ def drop_flat_windows(disp: np.ndarray, L1: np.ndarray, invalid: float) -> int:
     carried in from the surfaces around it. The test is exact (max = min), no threshold:
     an evenly lit real wall still varies by a grey level or so over 5x5 pixels.
     """
-    # uint8 max - min over the window, then any channel's (OpenCV's or: numpy's max over
-    # the channel axis took ten times as long)
-    spread = cv2.morphologyEx(L1, cv2.MORPH_GRADIENT, np.ones((BLOCK, BLOCK), np.uint8))
-    if spread.ndim == 3:
-        spread = functools.reduce(cv2.bitwise_or, [spread[..., c] for c in range(spread.shape[2])])
-    flat = spread == 0
+    flat = flat_windows(L1)
     flat &= disp > invalid
     disp[flat] = invalid
     return int(np.count_nonzero(flat))
@@ -505,14 +511,15 @@ def _cells_kept(L1: np.ndarray, L2: np.ndarray, num_d: int, opt,
     nd = int(math.ceil(num_d / reduction / 16.0)) * 16
     # the aggregation the full-size run will use (four full paths only where its volume fits)
     full = opt.full_paths and _volume_fits(L1, num_d)
+    flat = flat_windows(s1) if opt.flat_check else None  # the same for every penalty
     kept: dict[int, int] = {}
 
     def count(jump: int) -> int:
         if jump not in kept:
             disp, _ = _sgbm(s1, s2, 0, nd, opt.uniqueness, full_paths=full, lr_check=opt.lr_check,
                             speckle=opt.speckle, jump=jump)
-            if opt.flat_check:
-                drop_flat_windows(disp, s1, -1.0)
+            if flat is not None:
+                disp[flat] = -1.0
             if opt.end_check:
                 drop_range_ends(disp, 0, nd - 1, -1.0)
             kept[jump] = int(np.count_nonzero(disp >= 0))
