@@ -357,6 +357,21 @@ class Midpoint(NamedTuple):
 
 
 @njit(cache=True)
+def best_per_cell(uv, score, cell, nx, ny):
+    """Index of the highest ``score`` (the first of ties) in each occupied ``cell``-px square of an
+    ``nx`` x ``ny`` grid over ``uv`` (N, 2); (M,) int64, cells in x-major order. One pass: a sort
+    of millions of dense matches took 0.19 s of the bench pair's."""
+    best = np.full(nx * ny, -1, np.int64)
+    for i in range(uv.shape[0]):
+        kx = min(max(int(np.floor(uv[i, 0] / cell)), 0), nx - 1)
+        ky = min(max(int(np.floor(uv[i, 1] / cell)), 0), ny - 1)
+        c = kx * ny + ky
+        if best[c] < 0 or score[i] > score[best[c]]:
+            best[c] = i
+    return best[best >= 0]
+
+
+@njit(cache=True)
 def ray_midpoint(Kinv1, Kinv2, Rt, c2, x1, y1, x2, y2):
     """:class:`Midpoint` of the rays of pixel (x1, y1) of camera 1 and pixel (x2, y2) of camera 2.
 

@@ -54,12 +54,11 @@ def grid_subset(uv1: np.ndarray, score: np.ndarray, size: tuple[int, int]) -> np
     """Indices of the most confident match in each cell of a grid over image 1 (``size`` = (w, h))."""
     if len(uv1) == 0:
         return np.zeros(0, np.int64)
+    from .kernels import best_per_cell
+
     cell = max(float(np.sqrt(size[0] * size[1] / GRID_CELLS)), MIN_CELL_PX)
-    key = np.floor(uv1 / cell).astype(np.int64)
-    cid = key[:, 0] * 1_000_003 + key[:, 1]
-    order = np.lexsort((-np.asarray(score, float), cid))
-    first = np.r_[True, cid[order][1:] != cid[order][:-1]]
-    return order[first]
+    nx, ny = int(size[0] // cell) + 1, int(size[1] // cell) + 1
+    return best_per_cell(np.ascontiguousarray(uv1, np.float64), np.ascontiguousarray(score, np.float64), cell, nx, ny)
 
 
 #: Scale (px, Gaussian sigma) of the local brightness normalisation before tracking:
