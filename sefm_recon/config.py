@@ -109,6 +109,16 @@ class SiftConfig:
     #: upsampled copy is at most 3200 px, COLMAP's own largest SIFT image (0 = never).
     #: Internal: the user settings are capped at 25.
     upsample_max_size: int = 1600
+    #: Photos longer than this (px), with known cameras, are first posed from SIFT on
+    #: copies this long at octave 0 (a quarter of the pixels of a 2000 px photo, a
+    #: sixteenth of a 1600 px one's upsampled copy); only where that pose is refused does
+    #: the full front end above run. Its pose need not be the best SIFT can give: the dense
+    #: matches refine it (geometry.refine_pose). An unknown focal length is estimated from
+    #: the SIFT matches and needs the full front end (fountain-P11 at 1536 px without a
+    #: camera: focal errors up to 7 % instead of 3 %, one pair's left undetermined). 1024
+    #: px, the front end's size before COLMAP's defaults were adopted, still finds
+    #: thousands of inliers on a textured photo (0 = always the full front end). Internal.
+    quick_max_size: int = 1024
 
 
 @dataclass
@@ -484,6 +494,7 @@ _INTERNAL_RANGES: dict[str, Range] = {key: Range(low, high, low_open) for key, (
     "sgm.uniqueness": (0, 100, False),
     "sgm.jump_penalty": (0, 1000, False),
     "sift.upsample_max_size": (0, MAX_SIDE, False),
+    "sift.quick_max_size": (0, MAX_SIDE, False),
     "sgm.range_margin": (0, 4, False),
 }.items()}
 

@@ -183,15 +183,34 @@ def two_view_stage(v1: WorkingView, v2: WorkingView, cfg: Config, pose: tuple[np
     estimated from the pair where it can be (:func:`_estimate_focal`). An estimated
     pose must explain the independently found fundamental matrix (:func:`_check_geometry`)
     and, found from few inliers, survive a resampling of its matches (:func:`_check_consensus`).
+    Photos longer than ``sift.quick_max_size`` with known cameras are tried first with SIFT
+    on copies that long, and only where that fails (any refusal) with the full front end.
     Returns ``(TwoView, view1, view2, notes)``; the views carry the cameras used.
     """
+    sc = cfg.sift
+    known = v1.camera.has_prior_focal_length and v2.camera.has_prior_focal_length
+    # (an unknown focal length is estimated from the SIFT matches: they need the full front end's accuracy)
+    if sc.quick_max_size and (known or pose is not None) and max(*v1.size, *v2.size) > sc.quick_max_size:
+        quick = min(sc.quick_max_size, sc.max_image_size or sc.quick_max_size)
+        try:
+            tv, v1q, v2q, notes = _two_view(v1, v2, cfg, pose, names, quick, 0)
+            return tv, v1q, v2q, {**notes, "sift_max_size": quick}
+        except InputError as err:
+            logger.info("SIFT at %d px: %s; running it at %s", quick, err,
+                        f"{sc.max_image_size} px" if sc.max_image_size else "full size")
+    tv, v1, v2, notes = _two_view(v1, v2, cfg, pose, names, sc.max_image_size, sc.upsample_max_size)
+    return tv, v1, v2, {**notes, "sift_max_size": sc.max_image_size}
+
+
+def _two_view(v1: WorkingView, v2: WorkingView, cfg: Config, pose, names, max_size: int, upsample_max_size: int):
+    """:func:`two_view_stage` with SIFT on copies at most ``max_size`` long, upsampled
+    (octave -1) where at most ``upsample_max_size``."""
     from .geometry.focal import fundamental_matrix
 
     g = cfg.geometry
     xy1, xy2 = sift_correspondences(to_gray(v1.image), to_gray(v2.image), cfg.sift.max_features, cfg.sift.max_ratio,
                                     min_features=g.min_inliers if pose is None else 0,
-                                    names=names, max_size=cfg.sift.max_image_size,
-                                    upsample_max_size=cfg.sift.upsample_max_size)
+                                    names=names, max_size=max_size, upsample_max_size=upsample_max_size)
     if pose is not None:
         return with_known_pose(v1.K, v2.K, pose[0], pose[1], xy1, xy2, g.ransac_max_error), v1, v2, {}
     notes = {}
@@ -515,9 +534,8 @@ def write_pair_outputs(result: PairResult, cfg: Config, folder: Path, names: tup
 
     t0 = time.perf_counter()
     folder = Path(folder)
-    # open3d, numpy's file writes and OpenCV let go of Python's lock, the COLMAP model's
-    # points are added one by one in Python: the files are written side by side
-    # (the bench pair: 0.6 s instead of 1.0 s)
+    # numpy's file writes and OpenCV let go of Python's lock, the COLMAP model's points are
+    # added one by one in Python: the files are written side by side
     with ThreadPoolExecutor(max_workers=2) as pool:
         jobs = [pool.submit(write_point_cloud, folder / "points.ply", result.xyz, result.rgb, result.normals),
                 pool.submit(small_files)]

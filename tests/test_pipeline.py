@@ -338,3 +338,33 @@ def test_inliers_near_the_ransac_threshold_do_not_pull_the_refined_pose(seed, mo
     monkeypatch.setattr(two_view, "ROBUST_ROUNDS", 0)
     least_squares = rotation_error(refine_on_inliers(off, cam1, cam2, xy1, xy2))
     assert least_squares > 0.07 and robust < 0.06, (least_squares, robust)
+
+
+def test_photos_longer_than_the_quick_size_are_posed_from_sift_at_that_size_first(small_scene, caplog):
+    """SIFT first runs on copies sift.quick_max_size long (octave 0); the full front end (COLMAP's
+    sizes, octave -1 on small photos) only where that pose is refused, and never for photos that short."""
+    import logging
+
+    from sefm_recon.geometry.two_view import sift_scale
+
+    v1, v2 = small_scene.views
+    cam1, cam2 = v1.camera(1), v2.camera(2)
+    cam1.has_prior_focal_length = cam2.has_prior_focal_length = True  # as --camera gives them
+    truth = {}
+    for quick, used in ((256, 256), (64, 3200), (320, 3200), (0, 3200)):
+        cfg = load_config(None, ["output.mesh=false", f"sift.quick_max_size={quick}"], internal=True)
+        with caplog.at_level(logging.INFO, logger="sefm_recon.pipeline"):
+            caplog.clear()
+            res = reconstruct_pair(v1.image, v2.image, cam1, cam2, cfg)
+        assert res.notes["sift_max_size"] == used, quick
+        m = evaluate_matches(res.uv1, res.uv2, v1, v2)
+        truth[quick] = m["precision@1"]
+        # at 64 px (a 64x48 copy) too few features: refused, said, and the full front end runs
+        assert ("SIFT at 64 px" in caplog.text) == (quick == 64), caplog.text
+    assert sift_scale(320, 240, 256) == 0.8
+    # the pose from the smaller copies' features, refined with the dense matches, matches as well
+    assert truth[256] > truth[0] - 0.01 and truth[0] > 0.8, truth
+    # without a focal length, which is estimated from the SIFT matches: the full front end
+    cam1.has_prior_focal_length = cam2.has_prior_focal_length = False
+    cfg = load_config(None, ["output.mesh=false", "sift.quick_max_size=256"], internal=True)
+    assert reconstruct_pair(v1.image, v2.image, cam1, cam2, cfg).notes["sift_max_size"] == 3200
