@@ -380,32 +380,33 @@ def test_full_disk_simulated_before_writing(pair, tmp_path, monkeypatch):
 
 
 def test_full_disk_simulated_truncated_file(tmp_path, monkeypatch):
-    """No root needed: open3d reports success on a truncated file on a full device: the staging folder says
-    'no space left' and is removed."""
+    """No root needed: open3d reports success on a truncated file on a full device (the mesh's writer): the
+    staging folder says 'no space left' and is removed."""
     import errno
 
     import open3d as o3d
 
     from sefm_recon.io.output import StagedOutput
-    from sefm_recon.io.ply import write_point_cloud
+    from sefm_recon.io.ply import write_mesh
     from sefm_recon.io.space import NoSpaceError
 
-    real_write, real_usage = o3d.t.io.write_point_cloud, shutil.disk_usage
+    real_write, real_usage = o3d.io.write_triangle_mesh, shutil.disk_usage
 
-    def truncating(path, pcd, **kw):
-        ok = real_write(path, pcd, **kw)
+    def truncating(path, mesh, **kw):
+        ok = real_write(path, mesh, **kw)
         with open(path, "r+b") as f:
             f.truncate(os.path.getsize(path) // 2)
         return ok
 
-    monkeypatch.setattr(o3d.t.io, "write_point_cloud", truncating)
+    monkeypatch.setattr(o3d.io, "write_triangle_mesh", truncating)
     monkeypatch.setattr(shutil, "disk_usage", lambda p: real_usage(p)._replace(free=4096))
     xyz = np.random.default_rng(0).normal(size=(5000, 3))
+    tri = np.arange(4998)[:, None] + np.arange(3)
     with pytest.raises(OSError) as info:
-        write_point_cloud(tmp_path / "p.ply", xyz, np.zeros((5000, 3), np.uint8))
+        write_mesh(tmp_path / "m.ply", xyz, tri, np.zeros((5000, 3), np.uint8))
     assert info.value.errno == errno.ENOSPC and list(tmp_path.iterdir()) == []
     out = tmp_path / "out"
     with pytest.raises(NoSpaceError, match="no space left on the device: more than 1 MB needed"):
         with StagedOutput(out) as stage:
-            write_point_cloud(stage / "points.ply", xyz, None)
+            write_mesh(stage / "mesh.ply", xyz, tri)
     assert list(tmp_path.iterdir()) == []

@@ -35,7 +35,7 @@ class WorkingView:
         if not has_distortion(self.camera):
             # A pinhole camera maps affinely; pycolmap's per-point call costs 0.1 s per million.
             A = pinhole_matrix(self.camera) @ np.linalg.inv(self.K)
-            return uv @ A[:2, :2].T + A[:2, 2]
+            return uv @ np.ascontiguousarray(A[:2, :2].T) + A[:2, 2]  # (a strided operand: 3 x the time)
         rays = np.c_[uv, np.ones(len(uv))] @ np.linalg.inv(self.K).T
         return np.asarray(self.camera.img_from_cam(np.ascontiguousarray(rays)), dtype=np.float64)
 
