@@ -144,13 +144,14 @@ def test_sift_of_a_pair_side_by_side_is_each_image_s_own(monkeypatch, fork):
     or the child gives nothing, image 2 is done in this process with the same result."""
     import os
 
+    import sefm_recon.forked as forked
     import sefm_recon.geometry.two_view as two_view
     from sefm_recon.synthetic import render_scene
 
     views = render_scene(seed=5, width=480, height=360, style="classic").views
     g1, g2 = (cv2.cvtColor(v.image, cv2.COLOR_RGB2GRAY) for v in views[:2])
     expected = [two_view.extract_sift(g, 8192, 400, 0) for g in (g1, g2)]
-    monkeypatch.setattr(two_view, "_can_fork", lambda: True)
+    monkeypatch.setattr(forked, "can_fork", lambda: True)
     if fork == "fork fails":
         def no_fork():
             raise OSError("no process")

@@ -149,8 +149,8 @@ def sample_colors(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
     if img.ndim == 2:
         out = out[:, 0]
     if np.issubdtype(img.dtype, np.integer):
-        info = np.iinfo(img.dtype)
-        return np.clip(np.rint(out), info.min, info.max).astype(img.dtype)
+        # a weighted mean of the image's own values: within its type's range, no clipping needed
+        return np.rint(out, out=out).astype(img.dtype)
     return out.astype(img.dtype)
 
 
