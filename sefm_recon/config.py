@@ -255,6 +255,7 @@ class SgmConfig:
     end_check: bool = True  #: drop estimates within a column of the ends of the search (its edge, not a minimum found)
     flat_check: bool = True  #: drop estimates whose window in image 1 has one value (no signal: clipped, or fill)
     outside_check: bool = True  #: drop estimates whose window in image 2 reaches beyond image 2's pixels
+    edge_check: bool = True  #: drop the nearer surface's cell next to each depth edge (its windows fatten it)
     coarse_range: bool = True  #: without 8 SIFT inliers, search what a coarse pass finds (false: every depth)
     bicubic: bool = True  #: bicubic line images (false: bilinear)
     interpolate: bool = True  #: read disparities back interpolated over the surface (false: nearest cell)

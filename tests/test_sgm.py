@@ -239,6 +239,49 @@ def test_sgm_leaves_occluded_pixels_unmatched():
     assert matched[60:180, 130:150].mean() < 0.25
 
 
+def test_the_nearer_surfaces_cell_at_a_depth_edge_is_dropped():
+    from sefm_recon.matching.sgm import FATTENED_CELLS, drop_fattened_cells
+
+    assert FATTENED_CELLS == 1
+    bad = -1.0
+    rows = np.array([
+        [10, 10, 10, 30, 30, 30, 30, 30],  # a jump between neighbours: 30 starts the nearer surface
+        [30, 30, 30, 10, 10, 10, 10, 10],  # the nearer surface ends before the jump
+        [10, 10, bad, bad, 30, 30, 30, 30],  # across an occlusion strip narrower than the jump
+        [10, 10, 10, 11.5, 13, 14.5, 16, 17.5],  # a slanted surface: steps within 2 columns
+        [12, bad, bad, bad, bad, bad, 15, 15],  # a jump of 3 across 5 cells: no occlusion strip, no edge
+        [10, 10, 10, 10, 10, 10, 10, 10],
+    ], np.float32)
+    out = rows.copy()
+    assert drop_fattened_cells(out, bad) == 3
+    dropped = (out == bad) & (rows != bad)
+    assert dropped[0].tolist() == [0, 0, 0, 1, 0, 0, 0, 0]
+    assert dropped[1].tolist() == [0, 0, 1, 0, 0, 0, 0, 0]
+    assert dropped[2].tolist() == [0, 0, 0, 0, 1, 0, 0, 0]
+    assert not dropped[3:].any()
+
+
+def test_the_cells_dropped_at_depth_edges_are_wrong_far_more_often_than_the_rest():
+    """On the lateral pair, the square (30 px) in front of its background (10 px): the cells
+    dropped at its edges, fattened by the windows to the square's depth or hidden in image 2,
+    are wrong far more often than the matches overall (measured: 278 cells, 25 % wrong
+    against 0.55 %)."""
+    from sefm_recon.matching.sgm import match_pair_sgm
+
+    img1, img2, tv, d = _lateral_pair()
+    found = {}
+    for check in ("true", "false"):
+        res = match_pair_sgm(img1, img2, tv, load_config(None, [f"sgm.edge_check={check}"], internal=True))
+        found[check] = {tuple(p) for p in np.floor(res.uv1).astype(int).tolist()}, res
+    gone = found["false"][0] - found["true"][0]
+    res = found["false"][1]
+    ij, truth, err = _disparity_errors(res, d)
+    at = np.array([tuple(p) in gone for p in ij.tolist()])
+    assert 100 < at.sum() < 0.01 * len(ij)  # about a cell a row at each edge of the square
+    wrong = ~np.isfinite(truth) | (err > 1.0)  # off by more than 1 px, or hidden in image 2
+    assert wrong[at].mean() > 5 * wrong.mean()
+
+
 @pytest.mark.parametrize("bad_rows, within_px", [(slice(119, 122), 1.0), (slice(117, 124), 3.0)])
 def test_sgm_aggregation_across_lines_repairs_lines_without_signal(bad_rows, within_px):
     # rows of image 2 replaced by noise: on these lines alone no matcher finds the
