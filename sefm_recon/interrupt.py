@@ -13,15 +13,20 @@ where nothing may go on after an interrupt (before the results are committed).
 
 from __future__ import annotations
 
+import contextlib
 import signal
 import threading
 
 _received: list[int] = []
 
 
+_holding = [0]  # blocks of :func:`held` running
+
+
 def _handler(signum, frame):
     _received.append(signum)
-    raise KeyboardInterrupt
+    if not _holding[0]:
+        raise KeyboardInterrupt
 
 
 def install() -> None:
@@ -54,4 +59,19 @@ def caused_by_interrupt(err: BaseException) -> bool:
 def check() -> None:
     """Raise :class:`KeyboardInterrupt` if a signal was recorded (a library may have swallowed the first one)."""
     if received() is not None:
+        raise KeyboardInterrupt
+
+
+@contextlib.contextmanager
+def held():
+    """Hold Ctrl-C and SIGTERM back while the block runs: the handler records them, and the
+    interrupt is raised as the block ends. For a step that must not be cut in two, such as
+    starting jobs whose futures must all be known to be waited for."""
+    before = len(_received)
+    _holding[0] += 1
+    try:
+        yield
+    finally:
+        _holding[0] -= 1
+    if not _holding[0] and len(_received) > before:
         raise KeyboardInterrupt

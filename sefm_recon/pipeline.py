@@ -12,14 +12,14 @@ import dataclasses
 import json
 import logging
 import time
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import ThreadPoolExecutor, wait
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 import pycolmap
 
-from . import __version__
+from . import __version__, interrupt
 from .config import Config
 from .errors import InputError
 from .geometry.two_view import estimate_two_view, sift_correspondences, with_known_pose
@@ -518,6 +518,21 @@ def pair_output_bytes(result: PairResult, cfg: Config) -> int:
     return total + (64 << 10)  # report.json
 
 
+def _wait_through_interrupts(jobs: list) -> None:
+    """Wait until every job (a future) is done, through a Ctrl-C (its handler has recorded it:
+    it is raised again after). The staging folder is removed once the writing stops, and a
+    writer still at work would create it again: a Ctrl-C while the jobs were started or
+    awaited left matches.png and mesh.ply in a folder beside OUT. (The futures, not the
+    threads: Python 3.11 marks a thread as ended when a Ctrl-C interrupts joining it, so a
+    second join returns while it runs on.)"""
+    while True:
+        try:
+            wait(jobs)
+            return
+        except KeyboardInterrupt:
+            continue
+
+
 def write_pair_outputs(result: PairResult, cfg: Config, folder: Path, names: tuple[str, str]) -> dict:
     """Write every output file of a pair into ``folder`` (a staging folder)."""
     from .io.colmap_model import write_two_view_model
@@ -536,14 +551,20 @@ def write_pair_outputs(result: PairResult, cfg: Config, folder: Path, names: tup
     folder = Path(folder)
     # numpy's file writes and OpenCV let go of Python's lock, the COLMAP model's points are
     # added one by one in Python: the files are written side by side
-    with ThreadPoolExecutor(max_workers=2) as pool:
-        jobs = [pool.submit(write_point_cloud, folder / "points.ply", result.xyz, result.rgb, result.normals),
-                pool.submit(small_files)]
+    pool = ThreadPoolExecutor(max_workers=2, thread_name_prefix="write")
+    jobs: list = []
+    try:
+        with interrupt.held():  # every job started is one awaited below
+            jobs = [pool.submit(write_point_cloud, folder / "points.ply", result.xyz, result.rgb, result.normals),
+                    pool.submit(small_files)]
         write_two_view_model(folder / "sparse", result.camera1, result.camera2, names[0], names[1], result.R,
                              result.t, result.uv1, result.uv2, result.xyz, result.rgb,
                              max_points=cfg.output.sparse_max_points)
         for job in jobs:
             job.result()
+    finally:
+        _wait_through_interrupts(jobs)
+        pool.shutdown(wait=False)
     result.timings["write"] = time.perf_counter() - t0
     report = build_report(result, cfg, names)
     (folder / "report.json").write_text(json.dumps(report, indent=2))

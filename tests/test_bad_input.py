@@ -520,3 +520,31 @@ def test_stale_staging_folders_of_dead_runs_are_removed(tmp_path):
     assert r.returncode == 2
     assert not stale.exists()
     assert live.exists() and foreign.exists() and other.exists()
+
+
+def test_a_signal_while_held_is_raised_as_the_block_ends(monkeypatch):
+    """interrupt.held(): a Ctrl-C inside the block is recorded, the block runs to its end, and
+    the interrupt comes out of it; outside any block the handler raises at once."""
+    import os
+
+    from sefm_recon import interrupt
+
+    monkeypatch.setattr(interrupt, "_received", [])
+    old = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        interrupt.install()
+        steps = []
+        with pytest.raises(KeyboardInterrupt):
+            with interrupt.held():
+                os.kill(os.getpid(), signal.SIGINT)
+                for _ in range(1000):  # the handler runs at one of these bytecodes: it must not raise
+                    steps.append(1)
+        assert len(steps) == 1000 and interrupt.received() == signal.SIGINT
+        with pytest.raises(KeyboardInterrupt):
+            os.kill(os.getpid(), signal.SIGINT)
+            for _ in range(1000):
+                steps.append(2)
+        assert len(steps) < 2000
+    finally:
+        for sig, handler in old.items():
+            signal.signal(sig, handler)
