@@ -41,8 +41,9 @@ from .sefm import DenseMatches, depth_range
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["choose_jump_penalty", "coarse_range", "drop_flat_windows", "drop_range_ends", "flat_windows", "jump_ladder",
-           "match_pair_sgm", "parallax_columns", "pixel_matches", "search_range", "surface_median", "widen_range"]
+__all__ = ["choose_jump_penalty", "coarse_range", "drop_fattened_cells", "drop_flat_windows", "drop_outside_windows",
+           "drop_range_ends", "flat_windows", "jump_ladder", "match_pair_sgm", "parallax_columns", "pixel_matches",
+           "search_range", "surface_median", "widen_range"]
 
 #: StereoSGBM's settings, those of the evaluation's planar SGBM peer: 5x5 blocks, OpenCV's
 #: recommended smoothness penalties P1 = 8 C B^2 and P2 = 32 C B^2 (C channels; the
