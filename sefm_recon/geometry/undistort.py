@@ -28,13 +28,17 @@ class WorkingView:
         return self.image.shape[1], self.image.shape[0]
 
     def to_original(self, uv: np.ndarray) -> np.ndarray:
-        """Working pixel coordinates -> original image pixel coordinates, (N, 2)."""
+        """Working pixel coordinates -> original image pixel coordinates, (N, 2) float64.
+
+        Where the working image is the photo (scale 1, no distortion) ``uv`` itself is
+        returned (as float64): the same pixels, and copying 2.6 M matches twice cost 0.09 s.
+        """
         if len(uv) == 0:
             return np.zeros((0, 2))
         uv = np.asarray(uv, dtype=np.float64)
         if not has_distortion(self.camera):
             if self.scale == 1.0:
-                return uv.copy()  # the working image is the photo: the same pixels (2.6 M matches: 0.05 s a product)
+                return uv
             # A pinhole camera maps affinely; pycolmap's per-point call costs 0.1 s per million.
             A = pinhole_matrix(self.camera) @ np.linalg.inv(self.K)
             return uv @ np.ascontiguousarray(A[:2, :2].T) + A[:2, 2]  # (a strided operand: 3 x the time)
