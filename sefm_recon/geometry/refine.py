@@ -110,7 +110,14 @@ def pose_evidence(tv: TwoView, tracks: DenseTracks) -> float:
 def refine_pose(tv: TwoView, tracks: DenseTracks, size1: tuple[int, int], size2: tuple[int, int],
                 max_error: float = 1.0) -> TwoView | None:
     """The relative pose re-estimated from the free tracks with the known cameras (RANSAC, then
-    COLMAP's refinement of the essential matrix), or None when it cannot be (too few tracks or inliers).
+    refined over its inliers as the SIFT pose is, :func:`.two_view.refine_on_inliers`), or None
+    when it cannot be (too few tracks or inliers).
+
+    RANSAC's pose alone followed the tracks it drew: on a nearly planar real pair (Plastic
+    unrect) two runs whose dense matches differed by 1 % gave poses whose SIFT inliers lay
+    0.13 and 0.23 px from their lines, one refused; refined, 0.127 and 0.128 px. Over the 60
+    real cases the final pose's translation direction error fell 0.35 -> 0.26 deg (mean;
+    largest 2.7 -> 1.2), with fewer pairs matched again.
 
     ``max_error`` (px) is the RANSAC threshold: the tracks are sub-pixel, so 1 px,
     half the SIFT threshold.
@@ -134,7 +141,11 @@ def refine_pose(tv: TwoView, tracks: DenseTracks, size1: tuple[int, int], size2:
     inl = np.asarray(tvg.inlier_matches, dtype=np.int64).reshape(-1, 2)
     if tvg.cam2_from_cam1 is None or int(tvg.config) != int(C.CALIBRATED) or len(inl) < MIN_TRACKS:
         return None
-    R, t = rotation_translation(tvg.cam2_from_cam1)
+    from .two_view import refine_on_inliers
+
+    cam1, cam2 = pinhole_camera(tv.K1, *size1, 1), pinhole_camera(tv.K2, *size2, 2)
+    pose = refine_on_inliers(tvg.cam2_from_cam1, cam1, cam2, tracks.uv1[inl[:, 0]], tracks.uv2[inl[:, 1]])
+    R, t = rotation_translation(pose)
     return replace(tv, R=R, t=t, source="estimated, refined with the dense matches")
 
 
