@@ -316,13 +316,19 @@ def _drop_collisions(disp, L1, L2, shift, invalid, jump, margin, half):
                     drop[o] = True
             if not drop[c]:
                 owner[b] = c
-        n = 0
-        for c in range(width):
-            if drop[c]:
-                row[c] = invalid
-                n += 1
-        count[r] = n
+        count[r] = _set_dropped(row, drop, invalid)
     return count
+
+
+@njit(cache=True)
+def _set_dropped(row, drop, invalid):
+    """``row[drop] = invalid``; returns how many."""
+    n = 0
+    for c in range(row.shape[0]):
+        if drop[c]:
+            row[c] = invalid
+            n += 1
+    return n
 
 
 @njit(parallel=True, cache=True)
@@ -346,12 +352,7 @@ def _drop_fattened(disp, invalid, k, jump, tol):
                         for t in range(max(last - k + 1, 0), last + 1):
                             drop[t] = row[t] > invalid
             last = c
-        n = 0
-        for c in range(width):
-            if drop[c]:
-                row[c] = invalid
-                n += 1
-        count[r] = n
+        count[r] = _set_dropped(row, drop, invalid)
     return count
 
 
