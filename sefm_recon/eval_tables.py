@@ -65,6 +65,7 @@ SGM_ABLATIONS: dict[str, list[str]] = {
     "- bicubic line images (bilinear)": ["sgm.bicubic=false"],
     "- interpolated read-back at each pixel (nearest cell)": ["sgm.interpolate=false"],
     "- median over each surface": ["sgm.median=false"],
+    "- plane fit on plain windows": ["sgm.plain_fit=false"],
     "- holes of plain planes filled": ["sgm.planes=false"],
 }
 

@@ -526,6 +526,44 @@ def test_the_surface_median_removes_scatter_and_keeps_depth_edges_and_holes():
     assert (np.abs(out - truth)[ring & inner] <= 1.0).all()
 
 
+def test_the_plane_fit_restores_a_plain_slanted_surface_and_keeps_texture_and_depth_edges():
+    from sefm_recon.matching.sgm import PLAIN_LEVELS, fit_plain_surfaces, plain_windows
+
+    rows, cols = 40, 90
+    c = np.arange(cols, dtype=np.float64)
+    truth = np.where(c < 60, 10.0 + 0.3 * c, 40.0)  # a slanted plane, then a step to a far wall
+    truth = np.broadcast_to(truth, (rows, cols)).astype(np.float32)
+    # SGM's staircase on a plain slope: whole columns, off by up to half a column
+    disp = np.round(truth).astype(np.float32)
+    disp[10:14, 20:24] = -1.0  # a hole stays a hole
+    # line image 1: plain (one grey level of noise) left of column 30, textured beyond
+    rng = np.random.default_rng(5)
+    L1 = np.full((rows, cols, 3), 120.0) + rng.normal(0.0, 1.0, (rows, cols, 1))
+    L1[:, 30:] += rng.uniform(-40.0, 40.0, (rows, cols - 30, 1))
+    plain = plain_windows(np.clip(L1, 0, 255).astype(np.uint8))
+    assert plain[:, 3:27].all() and not plain[:, 33:].any()
+    assert PLAIN_LEVELS > 1.0  # the plain side's noise is below the level
+
+    out = disp.copy()
+    moved = fit_plain_surfaces(out, plain, -0.5)
+    assert moved > 0
+    left = (disp > -0.5) & (c < 28)[None, :]
+    assert np.abs(disp - truth)[left].max() > 0.4  # the staircase
+    # the plane through the steps: under 0.15 of a column (most off where the window is cut at the borders)
+    assert np.abs(out - truth)[left].max() < 0.15 and np.abs(out - truth)[left].mean() < 0.05
+    assert (out[10:14, 20:24] == -1.0).all()  # holes stay holes
+    assert (out[:, 30:] == disp[:, 30:]).all()  # textured windows keep their own estimate
+    # a plain window across the depth edge fits its own surface only (the wall is more than
+    # MEDIAN_SAME_SURFACE columns away): nothing of the wall reaches the slope, and back
+    edge = np.zeros((rows, cols), bool)
+    edge[:, 50:70] = True
+    out2 = disp.copy()
+    fit_plain_surfaces(out2, edge, -0.5)
+    assert (out2[:, 60:70] == 40.0).all()
+    slope = np.abs(out2 - truth)[:, 50:60]  # one-sided windows next to the edge: off by a step at most
+    assert slope.max() <= 0.35 and slope.mean() < np.abs(disp - truth)[:, 50:60].mean()
+
+
 @pytest.mark.parametrize("gains, expected", [
     ({}, 32),  # every penalty keeps as many cells: OpenCV's stays
     ({8: 1.2, 16: 1.1}, 8),  # fewer cells with each doubling: down to P1, no further
