@@ -564,6 +564,42 @@ def test_the_plane_fit_restores_a_plain_slanted_surface_and_keeps_texture_and_de
     assert slope.max() <= 0.35 and slope.mean() < np.abs(disp - truth)[:, 50:60].mean()
 
 
+def test_the_plane_fit_equals_least_squares_cell_by_cell():
+    # the running sums (windows on one surface) and the direct sums (windows across a depth
+    # edge) give each cell the least-squares plane of its window's cells on its surface
+    from sefm_recon.matching.sgm import MEDIAN_SAME_SURFACE, PLAIN_FIT_HALF, PLAIN_FIT_SUPPORT, fit_plain_surfaces
+
+    rng = np.random.default_rng(11)
+    rows, cols = 30, 40
+    r, c = np.mgrid[0:rows, 0:cols].astype(np.float64)
+    disp = np.where(c + 0.3 * r < 22, 20.0 + 0.2 * c - 0.1 * r, 8.0 + 0.05 * c)  # two planes, a slanted edge
+    disp = (disp + rng.normal(0.0, 0.4, disp.shape)).astype(np.float32)
+    disp[rng.random(disp.shape) < 0.15] = -1.0  # scattered holes
+    disp[5:9, 30:36] = -1.0  # and a block of them
+    plain = rng.random(disp.shape) < 0.8
+    out = disp.copy()
+    fit_plain_surfaces(out, plain, -0.5)
+
+    side = 2 * PLAIN_FIT_HALF + 1
+    need = max(3, int(np.ceil(PLAIN_FIT_SUPPORT * side * side)))
+    expected = disp.copy()
+    for i in range(rows):
+        for j in range(cols):
+            d0 = disp[i, j]
+            if d0 <= -0.5 or not plain[i, j]:
+                continue
+            win = (slice(max(i - PLAIN_FIT_HALF, 0), i + PLAIN_FIT_HALF + 1),
+                   slice(max(j - PLAIN_FIT_HALF, 0), j + PLAIN_FIT_HALF + 1))
+            d, rr, cc = disp[win].astype(np.float64), r[win], c[win]
+            on = (d > -0.5) & (np.abs(d - d0) <= MEDIAN_SAME_SURFACE)
+            if on.sum() < need:
+                continue
+            A = np.column_stack([np.ones(on.sum()), cc[on] - j, rr[on] - i])
+            expected[i, j] = np.linalg.lstsq(A, d[on], rcond=None)[0][0]
+    assert (out != disp).sum() > 300  # most plain cells moved
+    np.testing.assert_allclose(out, expected, atol=1e-4)
+
+
 @pytest.mark.parametrize("gains, expected", [
     ({}, 32),  # every penalty keeps as many cells: OpenCV's stays
     ({8: 1.2, 16: 1.1}, 8),  # fewer cells with each doubling: down to P1, no further
