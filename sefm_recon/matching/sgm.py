@@ -463,7 +463,7 @@ def surface_median(disp: np.ndarray, invalid: float, passes: int = MEDIAN_PASSES
 def plain_windows(L1: np.ndarray) -> np.ndarray:
     """(rows, width) bool: the cells of line image 1 whose :data:`BLOCK` square window has a
     grey-value standard deviation below :data:`PLAIN_LEVELS` (:func:`fit_plain_surfaces`)."""
-    g = (cv2.cvtColor(L1, cv2.COLOR_RGB2GRAY) if L1.ndim == 3 else L1).astype(np.float32)
+    g = to_gray(L1).astype(np.float32)
     mean = cv2.blur(g, (BLOCK, BLOCK))
     var = cv2.blur(cv2.multiply(g, g), (BLOCK, BLOCK))  # (OpenCV's sqrBoxFilter took twice as long)
     var -= cv2.multiply(mean, mean)
