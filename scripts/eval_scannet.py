@@ -16,6 +16,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import time
 from pathlib import Path
 
 import numpy as np
@@ -88,16 +89,18 @@ def main():
                                                                                     cfg)
             print(f"{n0[:22]:22s} {n1[-10:]:10s}  {row['putative_on_true_lines']} of {row['putative']} putative "
                   "SIFT matches within 2 px of the true epipolar lines")
+            t0 = time.perf_counter()
             try:
                 tv = two_view_only(img0, img1, cam0, cam1, cfg)
             except InputError as err:
                 row["error"] = str(err)
-                print(f"{n0[:22]:22s} {n1[-10:]:10s}  failed: {err}")
+                print(f"{n0[:22]:22s} {n1[-10:]:10s}  failed ({time.perf_counter() - t0:.1f} s): {err}")
             else:
+                row["seconds"] = round(time.perf_counter() - t0, 2)
                 row["rot_err_deg"], row["trans_err_deg"] = pose_change_deg(TwoView(K0, K1, R, t), tv)
                 row["sift_inliers"] = int(len(tv.kp1))
                 print(f"{n0[:22]:22s} {n1[-10:]:10s}  R {row['rot_err_deg']:6.2f} deg  t {row['trans_err_deg']:6.2f} deg"
-                      f"  {row['sift_inliers']} inliers of {tv.num_sift_matches}")
+                      f"  {row['sift_inliers']} inliers of {tv.num_sift_matches} ({row['seconds']:.1f} s)")
             rows.append(row)
             continue
         try:
