@@ -62,6 +62,7 @@ SGM_ABLATIONS: dict[str, list[str]] = {
     "- estimates whose window in image 2 reaches beyond it dropped": ["sgm.outside_check=false"],
     "- the nearer surface's cell at each depth edge dropped": ["sgm.edge_check=false"],
     "- of two surfaces reaching one pixel of image 2, the one whose colour differs dropped": ["sgm.collision_check=false"],
+    "- plain cells a nearer surface carries into an unmatched region dropped": ["sgm.occlusion_check=false"],
     "- bicubic line images (bilinear)": ["sgm.bicubic=false"],
     "- interpolated read-back at each pixel (nearest cell)": ["sgm.interpolate=false"],
     "- median over each surface": ["sgm.median=false"],

@@ -178,10 +178,12 @@ def test_disparities_read_back_at_every_pixel_lie_on_its_epipolar_line(monkeypat
         assert np.array_equal(a, b)
 
 
-def _lateral_pair(corrupt_rows=None):
+def _lateral_pair(corrupt_rows=None, plain=None):
     """A rectified 320x240 pair: a textured background 10 px of disparity behind a
     textured square at 30 px. Returns the images, the pose with its SIFT-like inliers,
-    and the true disparity of every pixel of image 1 (NaN where occluded in image 2)."""
+    and the true disparity of every pixel of image 1 (NaN where occluded in image 2).
+    ``plain`` (x0, x1): the background is plain (one grey and each image's own noise of
+    a grey level) over image 1's columns x0 .. x1 - 1."""
     import cv2
 
     rng = np.random.default_rng(3)
@@ -193,12 +195,17 @@ def _lateral_pair(corrupt_rows=None):
     w, h, a, b, y0, y1 = 320, 240, 150, 230, 60, 180  # the square: x in [a, b), y in [y0, y1) in image 1
     B, F = texture(h, w + 40), texture(h, w + 40)
     x = np.arange(w)
+    B2 = B  # the background at image 1's column x1 (image 2's x2 + 10)
+    if plain is not None:
+        B, B2 = B.copy(), B.copy()
+        for img in (B, B2):
+            img[:, plain[0]:plain[1]] = 128 + rng.normal(0, 1, (h, plain[1] - plain[0]))
     fg1 = np.zeros((h, w), bool)
     fg1[y0:y1, a:b] = True
     img1 = np.where(fg1, F[:, x], B[:, x])
     fg2 = np.zeros((h, w), bool)
     fg2[y0:y1, a - 30:b - 30] = True
-    img2 = np.where(fg2, F[:, x + 30], B[:, x + 10])  # x2 = x1 - d
+    img2 = np.where(fg2, F[:, x + 30], B2[:, x + 10])  # x2 = x1 - d
     if corrupt_rows is not None:
         img2[corrupt_rows] = rng.uniform(20, 235, img2[corrupt_rows].shape)
     d = np.where(fg1, 30.0, 10.0)
@@ -261,24 +268,31 @@ def test_the_nearer_surfaces_cell_at_a_depth_edge_is_dropped():
     assert not dropped[3:].any()
 
 
+def _cells_a_check_drops(setting: str, *, extra=(), **pair):
+    """On the lateral pair (``pair``: :func:`_lateral_pair`'s options), matched with the
+    internal switch ``setting`` on and off: ``(at, wrong, kept, d)``, per match found
+    with it off whether the check drops it and whether it is wrong (more than 1 px off,
+    or hidden in image 2), the pixels matched with it on, and the true disparity."""
+    from sefm_recon.matching.sgm import match_pair_sgm
+
+    img1, img2, tv, d = _lateral_pair(**pair)
+    found = {}
+    for check in ("true", "false"):
+        res = match_pair_sgm(img1, img2, tv, load_config(None, [f"{setting}={check}", *extra], internal=True))
+        found[check] = {tuple(p) for p in np.floor(res.uv1).astype(int).tolist()}, res
+    gone = found["false"][0] - found["true"][0]
+    ij, truth, err = _disparity_errors(found["false"][1], d)
+    at = np.array([tuple(p) in gone for p in ij.tolist()])
+    return at, ~np.isfinite(truth) | (err > 1.0), found["true"][0], d
+
+
 def test_the_cells_dropped_at_depth_edges_are_wrong_far_more_often_than_the_rest():
     """On the lateral pair, the square (30 px) in front of its background (10 px): the cells
     dropped at its edges, fattened by the windows to the square's depth or hidden in image 2,
     are wrong far more often than the matches overall (measured: 278 cells, 25 % wrong
     against 0.55 %)."""
-    from sefm_recon.matching.sgm import match_pair_sgm
-
-    img1, img2, tv, d = _lateral_pair()
-    found = {}
-    for check in ("true", "false"):
-        res = match_pair_sgm(img1, img2, tv, load_config(None, [f"sgm.edge_check={check}"], internal=True))
-        found[check] = {tuple(p) for p in np.floor(res.uv1).astype(int).tolist()}, res
-    gone = found["false"][0] - found["true"][0]
-    res = found["false"][1]
-    ij, truth, err = _disparity_errors(res, d)
-    at = np.array([tuple(p) in gone for p in ij.tolist()])
-    assert 100 < at.sum() < 0.01 * len(ij)  # about a cell a row at each edge of the square
-    wrong = ~np.isfinite(truth) | (err > 1.0)  # off by more than 1 px, or hidden in image 2
+    at, wrong, _, _ = _cells_a_check_drops("sgm.edge_check")
+    assert 100 < at.sum() < 0.01 * len(at)  # about a cell a row at each edge of the square
     assert wrong[at].mean() > 5 * wrong.mean()
 
 
@@ -319,21 +333,60 @@ def test_the_cells_dropped_where_two_surfaces_reach_one_pixel_are_wrong_far_more
     the other depth-edge step off: the cells the collision test drops are wrong (more than
     1 px off, or hidden in image 2) far more often than the matches overall (measured: 191
     cells, 95 % wrong against 0.55 %)."""
-    from sefm_recon.matching.sgm import match_pair_sgm
-
-    img1, img2, tv, d = _lateral_pair()
-    found = {}
-    for check in ("true", "false"):
-        cfg = load_config(None, [f"sgm.collision_check={check}", "sgm.edge_check=false"], internal=True)
-        res = match_pair_sgm(img1, img2, tv, cfg)
-        found[check] = {tuple(p) for p in np.floor(res.uv1).astype(int).tolist()}, res
-    gone = found["false"][0] - found["true"][0]
-    res = found["false"][1]
-    ij, truth, err = _disparity_errors(res, d)
-    at = np.array([tuple(p) in gone for p in ij.tolist()])
-    wrong = ~np.isfinite(truth) | (err > 1.0)
-    assert 20 < at.sum() < 0.01 * len(ij)
+    at, wrong, _, _ = _cells_a_check_drops("sgm.collision_check", extra=["sgm.edge_check=false"])
+    assert 20 < at.sum() < 0.01 * len(at)
     assert wrong[at].mean() > 5 * wrong.mean()
+
+
+def _one_row_occlusion(before: float, strip_colour: int, gap_start: int = 40):
+    """A row: a valid cell (parallax ``before``) at ``gap_start - 1``, unmatched cells up to
+    column 50, then a run at parallax 30: plain cells of ``strip_colour`` on 50 .. 55, the
+    nearer surface's texture from 56 on. The gap's colour is 100. Returns the cells dropped."""
+    from sefm_recon.matching.sgm import drop_occluded_plain, plain_windows
+
+    bad = -1.0
+    disp = np.full((5, 100), bad, np.float32)
+    disp[:, gap_start - 1] = before
+    disp[:, 50:80] = 30.0
+    L1 = np.full((5, 100, 3), 100, np.uint8)
+    L1[:, 50:56] = strip_colour
+    L1[:, 56:80] = np.random.default_rng(0).integers(0, 255, (5, 24, 3))
+    span2 = np.tile(np.array([[0, 99]]), (5, 1))
+    before_drop = disp.copy()
+    n = drop_occluded_plain(disp, L1, plain_windows(L1), span2, 0, bad)
+    dropped = np.flatnonzero((disp[2] == bad) & (before_drop[2] != bad)).tolist()
+    assert n == 5 * len(dropped)
+    return dropped
+
+
+def test_plain_cells_a_nearer_surface_carries_into_an_unmatched_region_are_dropped():
+    # a farther surface (parallax 10) before the gap: the plain strip of the gap's colour
+    # up to the nearer surface's edge is dropped (the window of cell 54 reaches the texture)
+    assert _one_row_occlusion(10.0, 100) == [50, 51, 52, 53]
+    # ... within the plain test's noise of the gap's colour
+    assert _one_row_occlusion(10.0, 104) == [50, 51, 52, 53]
+    # another colour than the gap's: the run's own surface, kept
+    assert _one_row_occlusion(10.0, 140) == []
+    # the surface before the gap as near (or nearer): no occlusion strip there
+    assert _one_row_occlusion(29.0, 100) == []
+    assert _one_row_occlusion(40.0, 100) == []
+    # the gap, seen with the run's parallax, reaches beyond image 2's left edge: kept
+    assert _one_row_occlusion(10.0, 100, gap_start=25) == []
+
+
+def test_the_plain_cells_dropped_beside_an_occlusion_are_wrong_far_more_often():
+    """On the lateral pair with its background plain over image 1's columns 70 .. 149 (the
+    20 px strip hidden behind the square in image 2 among them): the cells the occlusion
+    check drops are wrong (more than 1 px off, or hidden in image 2) far more often than
+    the matches overall, and most of the hidden strip is left unmatched (measured: 1418
+    cells, 91 % wrong against 6 %; the strip 84 % matched without the check, 31 % with)."""
+    at, wrong, kept, d = _cells_a_check_drops("sgm.occlusion_check", plain=(70, 150))
+    assert at.sum() > 500
+    assert wrong[at].mean() > 5 * wrong.mean()
+    strip = np.zeros(d.shape, bool)
+    ij_kept = np.array(sorted(kept))
+    strip[ij_kept[:, 1], ij_kept[:, 0]] = True
+    assert strip[60:180, 130:150].mean() < 0.5
 
 
 @pytest.mark.parametrize("bad_rows, within_px", [(slice(119, 122), 1.0), (slice(117, 124), 3.0)])
