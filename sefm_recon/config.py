@@ -253,7 +253,7 @@ class SgmConfig:
     sift_range: bool = True  #: search the SIFT inliers' parallax (false: their depths x2 and /2)
     range_margin: float = 0.0  #: the parallax range widened by this share of its span on each side (0: 8 columns)
     end_check: bool = True  #: drop estimates within a column of the ends of the search (its edge, not a minimum found)
-    flat_check: bool = True  #: drop estimates whose window in image 1 has one value (no signal: clipped, or fill)
+    flat_check: bool = True  #: drop estimates whose window in image 1 reaches into an area of one value (clipped, or fill)
     outside_check: bool = True  #: drop estimates whose window in image 2 reaches beyond image 2's pixels
     edge_check: bool = True  #: drop the nearer surface's cell next to each depth edge (its windows fatten it)
     collision_check: bool = True  #: of two surfaces' cells that reach one pixel of image 2, drop the one whose colour differs more

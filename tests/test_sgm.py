@@ -530,6 +530,21 @@ def test_sgm_drops_estimates_on_windows_without_signal():
     assert inside[True] == 0
 
 
+def test_estimates_whose_window_reaches_into_an_area_of_one_value_are_dropped():
+    # the fill left of a turned image's edge (columns 0 .. 19) beside texture: a window of
+    # 5 reaches into the fill from column 21 leftwards, and column 22's no longer does
+    from sefm_recon.matching.sgm import drop_flat_windows
+
+    L1 = np.random.default_rng(1).integers(1, 255, (12, 60, 3)).astype(np.uint8)
+    L1[:, :20] = 0
+    disp = np.full((12, 60), 5.0, np.float32)
+    disp[:, 40] = -1.0  # an estimate already dropped stays so, uncounted
+    n = drop_flat_windows(disp, L1, -1.0)
+    dropped = disp[6] == -1.0
+    assert dropped[:22].all() and not dropped[22:40].any() and not dropped[41:].any()
+    assert n == 12 * 22
+
+
 def test_a_coarse_pass_bounds_the_search_where_sift_gives_no_range():
     # No SIFT inliers: the search would span every parallax from a fifth of the
     # baseline to infinity (hundreds of columns here). The coarse pass at half size finds

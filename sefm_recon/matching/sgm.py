@@ -7,8 +7,9 @@ its Birchfield-Tomasi cost on gradient-prefiltered images (robust to gain and
 offset), a uniqueness test, a left-right check and sub-pixel interpolation, then a
 median over each surface (:func:`surface_median`). The
 search range comes from the parallax of the pose's SIFT inliers (:func:`search_range`);
-estimates at its ends (:func:`drop_range_ends`) and on windows without signal
-(:func:`drop_flat_windows`) are dropped.
+estimates at its ends (:func:`drop_range_ends`), on windows reaching into an area
+without signal (:func:`drop_flat_windows`) and on the plain strips a nearer surface
+carries into an unmatched region (:func:`drop_occluded_plain`) are dropped, among others.
 The disparities are then read back at every pixel of image 1 (:func:`pixel_matches`):
 the pixel's own ray gives its row and column, the disparity there its ray in image 2,
 so each pixel holds one match exactly on its epipolar line whatever the sampling of the
@@ -42,9 +43,9 @@ from .sefm import DenseMatches, depth_range
 logger = logging.getLogger(__name__)
 
 __all__ = ["choose_jump_penalty", "coarse_range", "drop_collisions", "drop_fattened_cells", "drop_flat_windows",
-           "drop_outside_windows", "drop_range_ends", "fit_plain_surfaces", "flat_windows", "jump_ladder",
-           "match_pair_sgm", "parallax_columns", "pixel_matches", "plain_windows", "search_range", "surface_median",
-           "widen_range"]
+           "drop_occluded_plain", "drop_outside_windows", "drop_range_ends", "fit_plain_surfaces", "flat_windows",
+           "jump_ladder", "match_pair_sgm", "parallax_columns", "pixel_matches", "plain_windows", "search_range",
+           "surface_median", "widen_range"]
 
 #: StereoSGBM's settings, those of the evaluation's planar SGBM peer: 5x5 blocks, OpenCV's
 #: recommended smoothness penalties P1 = 8 C B^2 and P2 = 32 C B^2 (C channels; the
@@ -500,19 +501,29 @@ def flat_windows(L1: np.ndarray) -> np.ndarray:
 
 
 def drop_flat_windows(disp: np.ndarray, L1: np.ndarray, invalid: float) -> int:
-    """Set the disparities whose matching window (:data:`BLOCK` square) in line image 1 has
-    a single value in every channel to ``invalid``, in place; returns how many.
+    """Set the disparities whose matching window (:data:`BLOCK` square) in line image 1
+    reaches into an area of a single value in every channel to ``invalid``, in place;
+    returns how many.
 
-    Such a window carries no signal at all: a clipped black or white area (the dino's
-    background), or the fill beyond a warped or undistorted image's edge. Its cost is
-    the same at every disparity, so its estimate came from the aggregation paths alone,
-    carried in from the surfaces around it. The test is exact (max = min), no threshold:
-    an evenly lit real wall still varies by a grey level or so over 5x5 pixels.
+    Such an area carries no signal at all: a clipped black or white area (the dino's
+    background), or the fill beyond a warped or undistorted image's edge. A window inside
+    it costs the same at every disparity, so its estimate came from the aggregation paths
+    alone, carried in from the surfaces around it; a window that reaches into it compares
+    the area's edge, which is no edge of the scene where it is fill (the turned images'
+    borders, matched to image 2's own fill edge: a line of wrong matches along them). The
+    area is the union of the windows of one value (:func:`flat_windows`, an exact test,
+    max = min, no threshold: an evenly lit real wall still varies by a grey level or so
+    over 5x5 pixels), and a window reaches into it where its centre lies within
+    ``BLOCK - 1`` cells of such a window's centre. Against dropping only the windows of one
+    value (p@1 / cov@1, true pose): the real pairs 0.9385 / 0.8819 -> 0.9423 / 0.8813 (conv
+    0.929 -> 0.939 of precision, rect unchanged), the generated scenes 0.8401 / 0.6354 ->
+    0.8430 / 0.6338 (the forward scenes' oversampled epipole, where windows of one value
+    lie); their centres alone, 0.9404 / 0.8820 on the real pairs.
     """
-    flat = flat_windows(L1)
-    flat &= disp > invalid
-    disp[flat] = invalid
-    return int(np.count_nonzero(flat))
+    reach = cv2.dilate(flat_windows(L1).view(np.uint8), np.ones((2 * BLOCK - 1, 2 * BLOCK - 1), np.uint8))
+    drop = reach.view(bool) & (disp > invalid)
+    disp[drop] = invalid
+    return int(np.count_nonzero(drop))
 
 
 def surface_median(disp: np.ndarray, invalid: float, passes: int = MEDIAN_PASSES) -> None:
