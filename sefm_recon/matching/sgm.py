@@ -414,31 +414,31 @@ def _drop_outside(disp, span2, shift, invalid, half):
     return count.sum()
 
 
-#: Where a nearer surface meets a plain region that SGM left unmatched, its disparity runs
-#: on into the plain cells next to it: their cost is the same at every disparity and SGM's
-#: smoothness carries the nearer surface's in. On image 1's occlusion side (the smaller
-#: columns, as ``x2 = x1 - d``) those cells are the farther surface's strip hidden in image 2
-#: (the walls beside Monopoly's board and Midd2's lampshade, pillow and hat; 4-6 % of those
-#: pairs' matches lay on pixels hidden in image 2). :func:`drop_occluded_plain` drops the
-#: valid cells at the start of a run that are plain (:func:`plain_windows`) and of the colour
-#: of the unmatched cell before the run, each channel within :data:`PLAIN_LEVELS` (the plain
-#: test's noise), up to the intensity edge where the run's own surface begins; only where the
-#: run is the nearer surface (a valid cell before the gap lies more than ``2 * LR_MAX_DIFF``
-#: columns farther) and the gap is not explained by image 2's edge (mapped with the run's
-#: parallax, it lies inside image 2's windows). Measured (p@1 / cov@1, true pose): the 60 real
-#: cases +0.0034 / -0.0014 (Midd2 conv 0.841 -> 0.853, Plastic unrect 0.844 -> 0.851,
-#: Monopoly +0.017-0.023), the 20 generated seeds +0.0037 / -0.0016 (no seed's precision
-#: down). On both ends of each run: +0.0049 / -0.0047 on the real pairs (beyond a nearer
-#: surface's far end the background is seen in both images). Without the two tests (in
-#: grey, 16 cells at most): -0.0073 of coverage (plain surfaces at image 1's left border);
-#: comparing grey instead of colour: -0.0036 (the cream lampshade on the grey wall).
-
-
 def drop_occluded_plain(disp: np.ndarray, L1: np.ndarray, plain: np.ndarray, span2: np.ndarray, shift: int,
                         invalid: float) -> int:
     """Set the plain cells at the occlusion-side start of each nearer surface's run that
-    continue the unmatched region before it to ``invalid``, in place; returns how many
-    (:data:`PLAIN_LEVELS`, the comment above it).
+    continue the unmatched region before it to ``invalid``, in place; returns how many.
+
+    Where a nearer surface meets a plain region that SGM left unmatched, its disparity
+    runs on into the plain cells next to it: their cost is the same at every disparity and
+    SGM's smoothness carries the nearer surface's in. On image 1's occlusion side (the
+    smaller columns, as ``x2 = x1 - d``) those cells are the farther surface's strip hidden
+    in image 2 (the walls beside Monopoly's board and Midd2's lampshade, pillow and hat;
+    4-6 % of those pairs' matches lay on pixels hidden in image 2). Dropped are the valid
+    cells at the start of a run that are plain (:func:`plain_windows`) and of the colour of
+    the unmatched cell before the run, each channel within :data:`PLAIN_LEVELS` (the plain
+    test's noise), up to the intensity edge where the run's own surface begins; only where
+    the run is the nearer surface (a valid cell before the gap lies more than
+    ``2 * LR_MAX_DIFF`` columns farther) and the gap is not explained by image 2's edge
+    (mapped with the run's parallax, it lies inside image 2's windows).
+
+    Measured (p@1 / cov@1, true pose): the 60 real cases +0.0034 / -0.0014 (Midd2 conv
+    0.841 -> 0.853, Plastic unrect 0.844 -> 0.851, Monopoly +0.017-0.023), the 20 generated
+    seeds +0.0037 / -0.0016 (no seed's precision down). On both ends of each run: +0.0049 /
+    -0.0047 on the real pairs (beyond a nearer surface's far end the background is seen in
+    both images). Without the two tests (in grey, 16 cells at most): -0.0073 of coverage
+    (plain surfaces at image 1's left border); comparing grey instead of colour: -0.0036
+    (the cream lampshade on the grey wall).
 
     ``disp`` (rows, width) float32 parallax in columns, invalid at or below ``invalid``;
     ``L1`` (rows, width[, channels]) uint8 line image 1; ``plain`` (rows, width) bool
@@ -1051,8 +1051,8 @@ def match_pair_sgm(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config,
     }
     logger.info("SGM (%s): %d line pairs, %d dense (%d more at the ends of the search, %d on windows without "
                 "signal, %d on windows beyond image 2, %d sharing a pixel of image 2 with another surface, %d "
-                "carried into an unmatched plain region and %d fattened at depth edges dropped), %d on plain windows fitted to their surface's plane, %d filled "
-                "on plain planes, %d valid",
+                "carried into an unmatched plain region and %d fattened at depth edges dropped), %d on plain "
+                "windows fitted to their surface's plane, %d filled on plain planes, %d valid",
                 "4 full paths" if full else "3 directions", counts["line_pairs"], n_dense, n_ends, n_flat, n_out,
                 n_col, n_occ, n_fat, n_fit, n_planes, len(uv1))
     return DenseMatches(uv1, uv2, score, rows, X, counts, timings)
