@@ -16,3 +16,23 @@ def finite_rows(*arrays: np.ndarray) -> np.ndarray:
     for a in arrays:
         total += np.asarray(a, np.float64) @ np.ones(a.shape[1])
     return np.isfinite(total)
+
+
+def append_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``a`` followed by the rows of ``b``, without copying ``a`` where it can be.
+
+    Where ``a`` is a leading slice of a C-contiguous array with room for ``b`` after it
+    (as :func:`sefm_recon.matching.sgm.pixel_matches` and
+    :func:`sefm_recon.geometry.triangulate.triangulate` return theirs), ``b`` is written
+    into that room and the longer slice returned; the caller owns the room. Otherwise a
+    concatenation. Appending a few thousand rows to millions copies only those.
+    """
+    base = a.base
+    n = len(a) + len(b)
+    if (isinstance(base, np.ndarray) and base.dtype == a.dtype and base.shape[1:] == a.shape[1:]
+            and base.flags.c_contiguous and a.flags.c_contiguous and len(base) >= n
+            and a.ctypes.data == base.ctypes.data):
+        out = base[:n]
+        out[len(a):] = b
+        return out
+    return np.concatenate([a, b])

@@ -22,6 +22,31 @@ def test_triangulation_of_known_points():
     assert np.all(angle > 0)
 
 
+def test_points_appended_into_the_room_left_after_them():
+    """``spare`` leaves unwritten rows after X; ``append_rows`` fills them without copying X,
+    and concatenates where there is no room (a plain array, or more rows than the room)."""
+    from sefm_recon.arrays import append_rows
+
+    rng = np.random.default_rng(2)
+    K = np.array([[800.0, 0, 400], [0, 800, 300], [0, 0, 1]])
+    R, t = rot_y(0.1), np.array([-1.0, 0.0, 0.1])
+    X = np.c_[rng.uniform(-2, 2, (50, 2)), rng.uniform(5, 10, 50)]
+    uv1, uv2 = project(K, np.eye(3), np.zeros(3), X), project(K, R, t, X)
+    Xh, valid, _ = triangulate(K, K, R, t, uv1, uv2, spare=10)
+    assert Xh.shape == (50, 3) and valid.all() and len(Xh.base) == 60
+    more = rng.normal(size=(10, 3))
+    both = append_rows(Xh, more)
+    assert np.shares_memory(both, Xh) and both.shape == (60, 3)
+    np.testing.assert_allclose(both[:50], X, atol=1e-9)
+    np.testing.assert_array_equal(both[50:], more)
+    over = append_rows(Xh, rng.normal(size=(11, 3)))  # beyond the room: a fresh array
+    assert not np.shares_memory(over, Xh) and over.shape == (61, 3)
+    np.testing.assert_array_equal(over[:50], Xh)
+    plain = np.arange(6.0).reshape(3, 2)
+    assert not np.shares_memory(append_rows(plain, plain), plain)
+    np.testing.assert_array_equal(append_rows(plain, plain[:1]), np.r_[plain, plain[:1]])
+
+
 def test_points_behind_a_camera_are_invalid():
     K = np.array([[500.0, 0, 320], [0, 500, 240], [0, 0, 1]])
     R, t = np.eye(3), np.array([-1.0, 0, 0])

@@ -410,15 +410,14 @@ def ray_midpoint(Kinv1, Kinv2, Rt, c2, x1, y1, x2, y2):
 
 
 @njit(parallel=True, cache=True)
-def triangulate_midpoint(Kinv1, Kinv2, Rt, c2, uv1, uv2):
+def triangulate_midpoint(Kinv1, Kinv2, Rt, c2, uv1, uv2, X):
     """Midpoint triangulation of pixel pairs ``uv1``, ``uv2`` (N, 2); see :func:`.triangulate.triangulate`.
 
-    Arguments as :func:`ray_midpoint`'s. Returns X (N, 3) camera-1 frame, valid (N,)
-    bool (finite, in front of both cameras, rays not parallel) and the angle between
-    the rays (N,), radians.
+    Arguments as :func:`ray_midpoint`'s; the points are written to the first N rows of
+    ``X`` (at least (N, 3)), camera-1 frame. Returns valid (N,) bool (finite, in front
+    of both cameras, rays not parallel) and the angle between the rays (N,), radians.
     """
     n = uv1.shape[0]
-    X = np.empty((n, 3))
     valid = np.empty(n, np.bool_)
     angle = np.empty(n)
     for kk in prange(n):
@@ -428,7 +427,7 @@ def triangulate_midpoint(Kinv1, Kinv2, Rt, c2, uv1, uv2):
         valid[k] = (np.isfinite(m.x) and np.isfinite(m.y) and np.isfinite(m.z) and m.s1 > 0.0 and m.s2 > 0.0
                     and 1.0 - m.cos * m.cos > 1e-12)
         angle[k] = np.arccos(min(1.0, max(-1.0, m.cos)))
-    return X, valid, angle
+    return valid, angle
 
 
 @njit(parallel=True, cache=True)

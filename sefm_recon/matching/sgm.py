@@ -29,6 +29,7 @@ import cv2
 import numpy as np
 from numba import njit, prange
 
+from ..arrays import append_rows
 from ..config import Config
 from ..errors import InputError
 from ..geometry.epipolar import ray_angles
@@ -1026,20 +1027,26 @@ def match_pair_sgm(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config,
     n_dense = int(np.count_nonzero(disp >= min_d))
     uv1, uv2, rows = pixel_matches(disp, min_d, grid, tv, size1, size2, opt.interpolate)
     del disp
-    X, valid, _ = triangulate(tv.K1, tv.K2, tv.R, tv.t, uv1, uv2)
-    if not valid.all():  # (copying millions of matches costs a few tenths of a second)
+    # uv1, uv2 and rows are leading slices of pixel-sized arrays; X gets the same room, so
+    # that the plane fill's matches (unmatched pixels of image 1) append without copying
+    # the millions found (a few tenths of a second on 2000x1500)
+    X, valid, _ = triangulate(tv.K1, tv.K2, tv.R, tv.t, uv1, uv2, spare=size1[0] * size1[1] - len(uv1))
+    if not valid.all():  # compacted within the same arrays, keeping their room
         keep = np.flatnonzero(valid)
-        uv1, uv2, rows, X = uv1[keep], uv2[keep], rows[keep], X[keep]
-    score = np.ones(len(uv1))
+        k = len(keep)
+        uv1[:k], uv2[:k], rows[:k], X[:k] = uv1[keep], uv2[keep], rows[keep], X[keep]
+        uv1, uv2, rows, X = uv1[:k], uv2[:k], rows[:k], X[:k]
+    n_sgm = len(uv1)
     n_planes = 0
     if opt.planes:
         pf = fill_planes(to_gray(img1), size2, tv, uv1, uv2, X)
         n_planes = len(pf.uv1)
     if n_planes:
         # no line of the line images (-1), and a lower confidence than a match SGM found
-        uv1, uv2, X = np.concatenate([uv1, pf.uv1]), np.concatenate([uv2, pf.uv2]), np.concatenate([X, pf.xyz])
-        rows = np.concatenate([rows, np.full(n_planes, -1, rows.dtype)])
-        score = np.concatenate([score, np.full(n_planes, PLANE_SCORE)])
+        uv1, uv2, X = append_rows(uv1, pf.uv1), append_rows(uv2, pf.uv2), append_rows(X, pf.xyz)
+        rows = append_rows(rows, np.full(n_planes, -1, rows.dtype))
+    score = np.ones(len(uv1))
+    score[n_sgm:] = PLANE_SCORE
     timings["matching"] = time.perf_counter() - t0
     counts = {
         "line_pairs": int(len(grid.phi)),
