@@ -85,21 +85,28 @@ def test_line_images_of_a_shifted_image_are_shifted_rows():
 
 
 def test_image_2s_spans_hold_only_its_own_pixels():
-    # forward motion: image 2's lines end at its border, inside the line image
+    """Forward motion: image 2's lines end at its border, inside the line image. Its outermost
+    pixels are repeated up to ``border`` px beyond its edge (no 0 blended into the samples of
+    its outer pixels), 0 farther; a span holds the cells whose interpolation reads image 2's
+    own pixels alone, and every such cell."""
     tv = _two_view(np.eye(3), [0.0, 0.0, -1.0])
     grid = line_grid(tv, (320, 240), (320, 240))
-    grid.pad = 10
+    grid.pad, shift2 = 10, 5
     width = grid.pad + grid.columns + 10
     flat = np.full((240, 320), 200, np.uint8)
-    for bicubic in (True, False):
-        _, L2, span2 = line_images(flat, flat, tv, grid, width, shift2=5, bicubic=bicubic, spans=True)
-        inside = np.arange(width)[None, :]
-        inside = (inside >= span2[:, :1]) & (inside <= span2[:, 1:])
+    u, v, front = project(tv.K2, tv.R.T, rays(grid.basis, grid.phi[:, None], grid.alpha(np.arange(width) - shift2)[None, :]))
+    beyond = np.maximum.reduce([-u, u - 320, -v, v - 240])  # px beyond image 2's edge (COLMAP positions)
+    for bicubic, reach in ((True, (1, 2)), (False, (0, 1))):
+        _, L2, span2 = line_images(flat, flat, tv, grid, width, shift2=shift2, bicubic=bicubic, spans=True,
+                                   border=2.0)
+        assert (L2[front & (beyond <= 2.0)] == 200).all()
+        assert (L2[~front | (beyond > 2.0)] == 0).all()
+        cells = np.arange(width)[None, :]
+        inside = (cells >= span2[:, :1]) & (cells <= span2[:, 1:])
+        fx, fy = np.floor(u - 0.5), np.floor(v - 0.5)
+        own = front & (fx - reach[0] >= 0) & (fx + reach[1] <= 319) & (fy - reach[0] >= 0) & (fy + reach[1] <= 239)
         assert inside.sum() > 0.5 * L2.size
-        assert (L2[inside] == 200).all()  # no cell of a span blends in the 0 beyond image 2's edge
-        # and each span is as long as it can be: the cells next to it do (where they are in the line image)
-        rows = np.flatnonzero((span2[:, 0] > 0) & (span2[:, 0] <= span2[:, 1]))
-        assert len(rows) and (L2[rows, span2[rows, 0] - 1] != 200).mean() > 0.9
+        np.testing.assert_array_equal(inside, own)
 
 
 def test_windows_beyond_image_2_are_dropped():
@@ -176,6 +183,25 @@ def test_disparities_read_back_at_every_pixel_lie_on_its_epipolar_line(monkeypat
     chunked = pixel_matches(disp, 0.0, grid, tv, (320, 240), (320, 240))
     for a, b in zip(chunked, (uv1, uv2, rows)):
         assert np.array_equal(a, b)
+
+
+def test_the_outermost_pixel_rows_read_back_as_every_other_row():
+    """The first and last rows of the line images lie half a row inside image 1's outermost
+    pixel centres, which are as near the row beyond that does not exist: they are matched
+    from the row there is, as every other row of pixels."""
+    from sefm_recon.matching.sgm import pixel_matches
+
+    tv = _two_view(np.eye(3), [-1.0, 0.0, 0.0])  # rectified: the rows are image rows
+    grid = line_grid(tv, (320, 240), (320, 240))
+    grid.pad = 40
+    width = grid.pad + grid.columns + 1
+    phi = grid.phi.copy()
+    # the outermost pixel centres a hair farther than half a row from the first (last) row
+    for outer, nudge in ((239, 0.02), (0, -0.02)):  # (phi runs up the image)
+        grid.phi = phi + nudge * grid.phi_step
+        uv1, _, _ = pixel_matches(_plane_disparities(tv, grid, width, 8.0), 0.0, grid, tv, (320, 240), (320, 240))
+        per_row = np.bincount(np.floor(uv1[:, 1]).astype(int), minlength=240)
+        assert per_row[120] > 200 and per_row[outer] >= per_row[120] - 2  # (a corner's partner may leave image 2)
 
 
 def _lateral_pair(corrupt_rows=None, plain=None):

@@ -158,15 +158,18 @@ def _remap_maps(P, basis, phi, alpha, mx, my):
 
 
 def line_images(img1: np.ndarray, img2: np.ndarray, tv: TwoView, grid: LineGrid, width: int, shift2: int = 0,
-                bicubic: bool = True, spans: bool = False):
+                bicubic: bool = True, spans: bool = False, border: float = 0.0):
     """Both images resampled (bicubic, else bilinear) onto the grid's rows and ``width`` columns,
     image 2's shifted: its column ``c`` holds the grid's column ``c - shift2``, so that a
     match ``x2 = x1 - d`` lies at ``x1 - (d - shift2)`` in the line images.
 
-    Returns ``(L1, L2)``, each (rows, width[, channels]) of the input dtype; cells
-    whose ray leaves an image or points behind it are 0. With ``spans``, also image
-    2's: (rows, 2) int64 first and last column of each row whose interpolation reads
-    image 2's pixels alone (none of the 0 beyond its edge; first > last: none).
+    Returns ``(L1, L2)``, each (rows, width[, channels]) of the input dtype. The
+    interpolation repeats each image's outermost pixels beyond its edge (no 0 mixed into
+    the samples of its outer pixels); cells whose ray meets the image plane more than
+    ``border`` px beyond its edge (COLMAP's ``0..w``, ``0..h``), leaves it or points
+    behind it are 0. With ``spans``, also image 2's: (rows, 2) int64 first and last
+    column of each row whose interpolation reads image 2's pixels alone (none of the
+    repeated ones beyond its edge; first > last: none).
     """
     interpolation = cv2.INTER_CUBIC if bicubic else cv2.INTER_LINEAR
     # pixels beyond the sample's (cv2 coordinates) that the interpolation reads on each side
@@ -185,9 +188,12 @@ def line_images(img1: np.ndarray, img2: np.ndarray, tv: TwoView, grid: LineGrid,
             _remap_maps(P, basis, phi, alpha, mx, my)
             # Bicubic: it blurs less than bilinear where samples fall between pixels
             # (real pairs: +0.006 at 1 px).
-            L[r0:r0 + len(phi)] = cv2.remap(img, mx, my, interpolation, borderMode=cv2.BORDER_CONSTANT)
+            rows = cv2.remap(img, mx, my, interpolation, borderMode=cv2.BORDER_REPLICATE)
+            h, w = img.shape[:2]
+            # cv2's pixel centres are integers: COLMAP's edge 0 is -0.5
+            rows[(mx < -0.5 - border) | (mx > w - 0.5 + border) | (my < -0.5 - border) | (my > h - 0.5 + border)] = 0
+            L[r0:r0 + len(phi)] = rows
             if spans and k == 1:
-                h, w = img.shape[:2]
                 fx, fy = np.floor(mx), np.floor(my)
                 inside = ((fx - reach[0] >= 0) & (fx + reach[1] <= w - 1)
                           & (fy - reach[0] >= 0) & (fy + reach[1] <= h - 1))

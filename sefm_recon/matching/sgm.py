@@ -739,8 +739,10 @@ def _read_back(disp, row_of, g, basis, K1inv, P2, w1, y0, w2, h2, uv2, row):
         c0 = int(np.floor(c))
         wc = c - c0
         # the cell nearest the pixel sets the surface: where the matcher rejected it
-        # (left-right check, uniqueness, speckle), the pixel stays unmatched
-        rn = q0 if wk < 0.5 else q1
+        # (left-right check, uniqueness, speckle), the pixel stays unmatched. The first
+        # and last rows lie half a row inside image 1's outermost pixel centres, which
+        # are as near the row beyond that does not exist: they take the row there is.
+        rn = q0 if (wk < 0.5 and q0 >= 0) or q1 < 0 else q1
         cn = c0 + (1 if wc >= 0.5 else 0)
         if rn < 0 or cn < 0 or cn >= W or disp[rn, cn] < g.min_disparity:
             continue
@@ -1004,7 +1006,8 @@ def match_pair_sgm(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config,
     # left of image 1's columns holds the search window of its first columns.
     grid.pad = num_d + 1
     width = grid.pad + grid.columns + 1
-    L1, L2, span2 = line_images(img1, img2, tv, grid, width, shift2=min_d, bicubic=opt.bicubic, spans=True)
+    L1, L2, span2 = line_images(img1, img2, tv, grid, width, shift2=min_d, bicubic=opt.bicubic, spans=True,
+                                border=BLOCK // 2)
     timings["line_pairs"] = time.perf_counter() - t0
     logger.info("line images %dx%d, parallax %d..%d columns", width, len(grid.phi), min_d, min_d + num_d)
 
