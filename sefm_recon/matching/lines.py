@@ -157,6 +157,19 @@ def _remap_maps(P, basis, phi, alpha, mx, my):
                 my[r, c] = -1e4
 
 
+@njit(parallel=True, cache=True)
+def _zero_beyond(rows, mx, my, x_lo, x_hi, y_lo, y_hi):
+    """Set the cells of ``rows`` (r, c, channels) whose map position lies outside
+    ``x_lo..x_hi`` by ``y_lo..y_hi`` to 0, in place (numpy's masks took 70 ms on the bench pair)."""
+    for r in prange(rows.shape[0]):
+        for c in range(rows.shape[1]):
+            x = mx[r, c]
+            y = my[r, c]
+            if x < x_lo or x > x_hi or y < y_lo or y > y_hi:
+                for k in range(rows.shape[2]):
+                    rows[r, c, k] = 0
+
+
 def line_images(img1: np.ndarray, img2: np.ndarray, tv: TwoView, grid: LineGrid, width: int, shift2: int = 0,
                 bicubic: bool = True, spans: bool = False, border: float = 0.0):
     """Both images resampled (bicubic, else bilinear) onto the grid's rows and ``width`` columns,
@@ -191,7 +204,8 @@ def line_images(img1: np.ndarray, img2: np.ndarray, tv: TwoView, grid: LineGrid,
             rows = cv2.remap(img, mx, my, interpolation, borderMode=cv2.BORDER_REPLICATE)
             h, w = img.shape[:2]
             # cv2's pixel centres are integers: COLMAP's edge 0 is -0.5
-            rows[(mx < -0.5 - border) | (mx > w - 0.5 + border) | (my < -0.5 - border) | (my > h - 0.5 + border)] = 0
+            _zero_beyond(rows.reshape(rows.shape[0], rows.shape[1], -1), mx, my, -0.5 - border, w - 0.5 + border,
+                         -0.5 - border, h - 0.5 + border)
             L[r0:r0 + len(phi)] = rows
             if spans and k == 1:
                 fx, fy = np.floor(mx), np.floor(my)
