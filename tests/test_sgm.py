@@ -85,10 +85,10 @@ def test_line_images_of_a_shifted_image_are_shifted_rows():
 
 
 def test_image_2s_spans_hold_only_its_own_pixels():
-    """Forward motion: image 2's lines end at its border, inside the line image. Its outermost
-    pixels are repeated up to ``border`` px beyond its edge (no 0 blended into the samples of
-    its outer pixels), 0 farther; a span holds the cells whose interpolation reads image 2's
-    own pixels alone, and every such cell."""
+    """Forward motion: image 2's lines end at its border, inside the line image. Up to its
+    edge the samples are its own (its outermost pixels repeated where the interpolation
+    reaches beyond them: no 0 blended in), 0 beyond; a span holds the cells whose
+    interpolation reads image 2's own pixels alone, and every such cell."""
     tv = _two_view(np.eye(3), [0.0, 0.0, -1.0])
     grid = line_grid(tv, (320, 240), (320, 240))
     grid.pad, shift2 = 10, 5
@@ -97,10 +97,9 @@ def test_image_2s_spans_hold_only_its_own_pixels():
     u, v, front = project(tv.K2, tv.R.T, rays(grid.basis, grid.phi[:, None], grid.alpha(np.arange(width) - shift2)[None, :]))
     beyond = np.maximum.reduce([-u, u - 320, -v, v - 240])  # px beyond image 2's edge (COLMAP positions)
     for bicubic, reach in ((True, (1, 2)), (False, (0, 1))):
-        _, L2, span2 = line_images(flat, flat, tv, grid, width, shift2=shift2, bicubic=bicubic, spans=True,
-                                   border=2.0)
-        assert (L2[front & (beyond <= 2.0)] == 200).all()
-        assert (L2[~front | (beyond > 2.0)] == 0).all()
+        _, L2, span2 = line_images(flat, flat, tv, grid, width, shift2=shift2, bicubic=bicubic, spans=True)
+        assert (L2[front & (beyond <= 0.0)] == 200).all()
+        assert (L2[~front | (beyond > 0.0)] == 0).all()
         cells = np.arange(width)[None, :]
         inside = (cells >= span2[:, :1]) & (cells <= span2[:, 1:])
         fx, fy = np.floor(u - 0.5), np.floor(v - 0.5)

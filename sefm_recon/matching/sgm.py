@@ -1006,8 +1006,7 @@ def match_pair_sgm(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config,
     # left of image 1's columns holds the search window of its first columns.
     grid.pad = num_d + 1
     width = grid.pad + grid.columns + 1
-    L1, L2, span2 = line_images(img1, img2, tv, grid, width, shift2=min_d, bicubic=opt.bicubic, spans=True,
-                                border=BLOCK // 2)
+    L1, L2, span2 = line_images(img1, img2, tv, grid, width, shift2=min_d, bicubic=opt.bicubic, spans=True)
     timings["line_pairs"] = time.perf_counter() - t0
     logger.info("line images %dx%d, parallax %d..%d columns", width, len(grid.phi), min_d, min_d + num_d)
 
