@@ -87,8 +87,12 @@ def test_line_images_of_a_shifted_image_are_shifted_rows():
 def test_image_2s_spans_hold_only_its_own_pixels():
     """Forward motion: image 2's lines end at its border, inside the line image. Up to its
     edge the samples are its own (its outermost pixels repeated where the interpolation
-    reaches beyond them: no 0 blended in), 0 beyond; a span holds the cells whose
-    interpolation reads image 2's own pixels alone, and every such cell."""
+    reaches beyond them: no 0 blended in), 0 beyond. A span holds the cells whose sample,
+    and those of the cells within a window's rows and a cell along the row, lie between
+    image 2's outermost pixel centres, and every such cell (rows beyond the line image's
+    first and last do not count)."""
+    from sefm_recon.matching.lines import SPAN_ROWS
+
     tv = _two_view(np.eye(3), [0.0, 0.0, -1.0])
     grid = line_grid(tv, (320, 240), (320, 240))
     grid.pad, shift2 = 10, 5
@@ -96,14 +100,18 @@ def test_image_2s_spans_hold_only_its_own_pixels():
     flat = np.full((240, 320), 200, np.uint8)
     u, v, front = project(tv.K2, tv.R.T, rays(grid.basis, grid.phi[:, None], grid.alpha(np.arange(width) - shift2)[None, :]))
     beyond = np.maximum.reduce([-u, u - 320, -v, v - 240])  # px beyond image 2's edge (COLMAP positions)
-    for bicubic, reach in ((True, (1, 2)), (False, (0, 1))):
+    between = front & (u >= 0.5) & (u <= 319.5) & (v >= 0.5) & (v <= 239.5)  # between its pixel centres
+    half = SPAN_ROWS // 2
+    padded = np.pad(between, ((half, half), (1, 1)), constant_values=True)
+    own = np.ones_like(between)
+    for dr in range(-half, half + 1):
+        for dc in (-1, 0, 1):
+            own &= padded[half + dr:half + dr + between.shape[0], 1 + dc:1 + dc + width]
+    for bicubic in (True, False):
         _, L2, span2 = line_images(flat, flat, tv, grid, width, shift2=shift2, bicubic=bicubic, spans=True)
         assert (L2[front & (beyond <= 0.0)] == 200).all()
         assert (L2[~front | (beyond > 0.0)] == 0).all()
-        cells = np.arange(width)[None, :]
-        inside = (cells >= span2[:, :1]) & (cells <= span2[:, 1:])
-        fx, fy = np.floor(u - 0.5), np.floor(v - 0.5)
-        own = front & (fx - reach[0] >= 0) & (fx + reach[1] <= 319) & (fy - reach[0] >= 0) & (fy + reach[1] <= 239)
+        inside = (np.arange(width)[None, :] >= span2[:, :1]) & (np.arange(width)[None, :] <= span2[:, 1:])
         assert inside.sum() > 0.5 * L2.size
         np.testing.assert_array_equal(inside, own)
 
