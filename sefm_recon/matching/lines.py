@@ -233,6 +233,5 @@ def line_images(img1: np.ndarray, img2: np.ndarray, tv: TwoView, grid: LineGrid,
         any_in = inside.any(axis=1)
         span2[:, 0] = np.where(any_in, inside.argmax(axis=1), width)
         span2[:, 1] = np.where(any_in, width - 1 - inside[:, ::-1].argmax(axis=1), -1)
-    if spans:
         return out[0], out[1], span2
     return out[0], out[1]
