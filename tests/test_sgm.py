@@ -91,7 +91,7 @@ def test_image_2s_spans_hold_only_its_own_pixels():
     and those of the cells within a window's rows and a cell along the row, lie between
     image 2's outermost pixel centres, and every such cell (rows beyond the line image's
     first and last do not count)."""
-    from sefm_recon.matching.lines import SPAN_ROWS
+    from sefm_recon.matching.sgm import BLOCK
 
     tv = _two_view(np.eye(3), [0.0, 0.0, -1.0])
     grid = line_grid(tv, (320, 240), (320, 240))
@@ -101,14 +101,15 @@ def test_image_2s_spans_hold_only_its_own_pixels():
     u, v, front = project(tv.K2, tv.R.T, rays(grid.basis, grid.phi[:, None], grid.alpha(np.arange(width) - shift2)[None, :]))
     beyond = np.maximum.reduce([-u, u - 320, -v, v - 240])  # px beyond image 2's edge (COLMAP positions)
     between = front & (u >= 0.5) & (u <= 319.5) & (v >= 0.5) & (v <= 239.5)  # between its pixel centres
-    half = SPAN_ROWS // 2
+    half = BLOCK // 2
     padded = np.pad(between, ((half, half), (1, 1)), constant_values=True)
     own = np.ones_like(between)
     for dr in range(-half, half + 1):
         for dc in (-1, 0, 1):
             own &= padded[half + dr:half + dr + between.shape[0], 1 + dc:1 + dc + width]
     for bicubic in (True, False):
-        _, L2, span2 = line_images(flat, flat, tv, grid, width, shift2=shift2, bicubic=bicubic, spans=True)
+        _, L2, span2 = line_images(flat, flat, tv, grid, width, shift2=shift2, bicubic=bicubic, spans=True,
+                                   window=BLOCK)
         assert (L2[front & (beyond <= 0.0)] == 200).all()
         assert (L2[~front | (beyond > 0.0)] == 0).all()
         inside = (np.arange(width)[None, :] >= span2[:, :1]) & (np.arange(width)[None, :] <= span2[:, 1:])

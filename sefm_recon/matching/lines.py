@@ -51,14 +51,6 @@ COLUMN_SPACING_PX = 1.0
 #: Rays closer than this to an epipole (px at the focal length) are left out: ``u`` runs to
 #: infinity there, and a point that close to the epipole shows almost no parallax.
 EPIPOLE_MARGIN_PX = 4.0
-#: Image 2's spans (:func:`line_images`) hold the cells whose rows within a matching window
-#: (5, the SGM block) lie inside image 2 too: a window that reaches across image 2's edge
-#: compares the 0 beyond it (the converging pairs: rows that leave image 2 across its
-#: bottom edge), and one along which the line runs (a rect pair's first and last rows)
-#: does not. Against each cell's own interpolation inside the image (its 4x4 pixels):
-#: real pairs 0.9425 / 0.8815 -> 0.9425 / 0.8825 at 1 px (rect coverage 0.8835 -> 0.8868,
-#: conv 0.8784 -> 0.8774), generated 0.8428 / 0.6336 -> 0.8438 / 0.6328.
-SPAN_ROWS = 5
 #: Rows resampled at a time: their maps stay near 16 MB at 4000 columns.
 _BLOCK_ROWS = 512
 
@@ -179,7 +171,7 @@ def _zero_beyond(rows, mx, my, x_lo, x_hi, y_lo, y_hi):
 
 
 def line_images(img1: np.ndarray, img2: np.ndarray, tv: TwoView, grid: LineGrid, width: int, shift2: int = 0,
-                bicubic: bool = True, spans: bool = False):
+                bicubic: bool = True, spans: bool = False, window: int = 1):
     """Both images resampled (bicubic, else bilinear) onto the grid's rows and ``width`` columns,
     image 2's shifted: its column ``c`` holds the grid's column ``c - shift2``, so that a
     match ``x2 = x1 - d`` lies at ``x1 - (d - shift2)`` in the line images.
@@ -189,8 +181,9 @@ def line_images(img1: np.ndarray, img2: np.ndarray, tv: TwoView, grid: LineGrid,
     leaves it or points behind it are 0; inside, the interpolation repeats the image's
     outermost pixels where its support reaches beyond them (no 0 mixed into the samples
     of the outer half pixel). With ``spans``, also image 2's: (rows, 2) int64 first and
-    last column of each row whose cell and the cells of its :data:`SPAN_ROWS` rows lie
-    between image 2's outermost pixel centres, one cell short of them along the row
+    last column of each row whose cell and the cells of the ``window`` rows about it (a
+    matcher's window: odd) lie between image 2's outermost pixel centres, one cell short
+    of them along the row; rows beyond the line image's first and last do not count
     (first > last: none).
 
     (Repeating the outermost pixels 2 px beyond the edge, half a window, matched the rim
@@ -224,10 +217,10 @@ def line_images(img1: np.ndarray, img2: np.ndarray, tv: TwoView, grid: LineGrid,
                 own[r0:r0 + len(phi)] = (mx >= 0) & (mx <= w - 1) & (my >= 0) & (my <= h - 1)
         out.append(L)
     if spans:
-        # ...whose neighbours within a window's rows (SPAN_ROWS) and the interpolation's
-        # pixel along the row are so too; rows beyond the line image's own first and last
-        # (the image's edge where the lines run along it) do not count
-        inside = cv2.erode(own, np.ones((SPAN_ROWS, 3), np.uint8), borderType=cv2.BORDER_CONSTANT,
+        # ...whose neighbours within the window's rows and the interpolation's pixel along
+        # the row are so too; rows beyond the line image's own first and last (the image's
+        # edge where the lines run along it) do not count
+        inside = cv2.erode(own, np.ones((window, 3), np.uint8), borderType=cv2.BORDER_CONSTANT,
                            borderValue=1).view(bool)
         # a row is a line through the epipole: its cells inside the (convex) image are one run
         any_in = inside.any(axis=1)
