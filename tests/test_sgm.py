@@ -8,7 +8,7 @@ from sefm_recon.evaluate import covisibility_mask, evaluate_matches
 from sefm_recon.geometry.epipolar import ray_angles
 from sefm_recon.geometry.two_view import TwoView
 from sefm_recon.matching.lines import COLUMN_SPACING_PX, ROW_SPACING_PX, line_grid, line_images, project, rays
-from sefm_recon.matching.sgm import MEDIAN_SAME_SURFACE, parallax_columns, surface_median
+from sefm_recon.matching.sgm import MEDIAN_SAME_SURFACE, match_pair_sgm, parallax_columns, surface_median
 from sefm_recon.pipeline import reconstruct_pair
 
 from .conftest import rot_y
@@ -212,9 +212,9 @@ def test_the_outermost_pixel_rows_read_back_as_every_other_row():
         assert per_row[120] > 200 and per_row[outer] >= per_row[120] - 2  # (a corner's partner may leave image 2)
 
 
-def _lateral_pair(corrupt_rows=None, plain=None):
+def _lateral_pair(corrupt_rows=None, plain=None, near=30):
     """A rectified 320x240 pair: a textured background 10 px of disparity behind a
-    textured square at 30 px. Returns the images, the pose with its SIFT-like inliers,
+    textured square at ``near`` px (30). Returns the images, the pose with its SIFT-like inliers,
     and the true disparity of every pixel of image 1 (NaN where occluded in image 2).
     ``plain`` (x0, x1): the background is plain (one grey and each image's own noise of
     a grey level) over image 1's columns x0 .. x1 - 1."""
@@ -227,7 +227,7 @@ def _lateral_pair(corrupt_rows=None, plain=None):
         return cv2.normalize(t, None, 20, 235, cv2.NORM_MINMAX)
 
     w, h, a, b, y0, y1 = 320, 240, 150, 230, 60, 180  # the square: x in [a, b), y in [y0, y1) in image 1
-    B, F = texture(h, w + 40), texture(h, w + 40)
+    B, F = texture(h, w + max(40, near + 10)), texture(h, w + max(40, near + 10))
     x = np.arange(w)
     B2 = B  # the background at image 1's column x1 (image 2's x2 + 10)
     if plain is not None:
@@ -238,13 +238,13 @@ def _lateral_pair(corrupt_rows=None, plain=None):
     fg1[y0:y1, a:b] = True
     img1 = np.where(fg1, F[:, x], B[:, x])
     fg2 = np.zeros((h, w), bool)
-    fg2[y0:y1, a - 30:b - 30] = True
-    img2 = np.where(fg2, F[:, x + 30], B2[:, x + 10])  # x2 = x1 - d
+    fg2[y0:y1, a - near:b - near] = True
+    img2 = np.where(fg2, F[:, x + near], B2[:, x + 10])  # x2 = x1 - d
     if corrupt_rows is not None:
         img2[corrupt_rows] = rng.uniform(20, 235, img2[corrupt_rows].shape)
-    d = np.where(fg1, 30.0, 10.0)
-    d[y0:y1, a - 20:a] = np.nan  # background hidden behind the square in image 2
-    d[:, :30] = np.where(fg1[:, :30], np.nan, d[:, :30])
+    d = np.where(fg1, float(near), 10.0)
+    d[y0:y1, a - (near - 10):a] = np.nan  # background hidden behind the square in image 2
+    d[:, :near] = np.where(fg1[:, :near], np.nan, d[:, :near])
     d[:, :10] = np.nan  # leaves image 2
     f = 300.0
     kx, ky = np.meshgrid(np.arange(20, 300, 10) + 0.5, np.arange(20, 220, 10) + 0.5)
@@ -599,6 +599,58 @@ def test_a_coarse_pass_bounds_the_search_where_sift_gives_no_range():
     ij, truth, err = _disparity_errors(res, d)
     seen = np.isfinite(truth)
     assert np.mean(err[seen] < 1.0) > 0.95 and seen.sum() > 0.85 * np.isfinite(d).sum()
+
+
+def test_the_near_extension_follows_a_surface_without_gaps_and_stops_at_one():
+    from sefm_recon.matching.sgm import MARGIN_COLUMNS, CoarseParallax, extend_near
+
+    step = 4.0  # full-size columns per coarse column
+    surface = np.arange(100.0, 141.0, step)  # a floor coming nearer: 100 .. 140 without a gap
+    stray = np.array([140.0 + MARGIN_COLUMNS + step + 1, 300.0])  # apart from it: a wrong match
+    plain = np.array([150.0])  # within reach, but on a plain window: not evidence
+    p = np.concatenate([surface, stray, plain, [20.0, 60.0]])  # and the far side, never followed
+    textured = np.ones(len(p), bool)
+    textured[len(surface) + len(stray)] = False
+    found = CoarseParallax(p, textured, step)
+    assert extend_near(96.0, found) == 140.0
+    assert extend_near(100.0 - MARGIN_COLUMNS - step - 0.5, found) == 100.0 - MARGIN_COLUMNS - step - 0.5
+    assert extend_near(200.0, found) == 200.0  # the one estimate beyond lies 100 columns off
+
+
+def test_the_search_follows_a_floor_nearer_than_its_sift_points():
+    # A rectified pair of one slanted surface (a floor towards the camera): disparity
+    # from 10 px at the top row to 100 px at the bottom. SIFT points on the top third
+    # alone (10..40 px): the bottom rows lie beyond their range, its margin and OpenCV's
+    # rounding. The coarse pass finds the floor beyond them, and the search follows it.
+    import cv2
+
+    rng = np.random.default_rng(5)
+    w, h, f = 320, 240, 300.0
+    tex = cv2.GaussianBlur(rng.uniform(0, 255, (h, w + 110)).astype(np.float32), (0, 0), 1.2)
+    tex = cv2.normalize(tex, None, 20, 235, cv2.NORM_MINMAX)
+    d = np.broadcast_to((10.0 + 90.0 * np.arange(h) / (h - 1))[:, None], (h, w)).copy()
+    xs, ys = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
+    img1 = tex[:, :w].astype(np.uint8)
+    img2 = cv2.remap(tex, xs + d.astype(np.float32), ys, cv2.INTER_LINEAR).astype(np.uint8)  # x2 = x1 - d
+    d[:, w - 110:] = np.nan  # the texture ends at image 1's column w + 110
+    img1, img2 = (np.repeat(im[..., None], 3, axis=2) for im in (img1, img2))
+    kx, ky = np.meshgrid(np.arange(20, 200, 10) + 0.5, np.arange(10, h // 3, 10) + 0.5)
+    kp1 = np.column_stack([kx.ravel(), ky.ravel()])
+    kd = d[ky.ravel().astype(int), kx.ravel().astype(int)]
+    K = np.array([[f, 0, w / 2], [0, f, h / 2], [0, 0, 1.0]])
+    tv = TwoView(K, K, np.eye(3), np.array([-1.0, 0, 0]), kp1, kp1 - np.column_stack([kd, 0 * kd]), len(kp1))
+    bottom = np.zeros((h, w), bool)
+    bottom[d[:, 0] > 80.0, 110:w - 110] = True  # beyond the search without the extension, seen in image 2
+    for near_range in (False, True):
+        cfg = load_config(None, [f"sgm.near_range={str(near_range).lower()}"], internal=True)
+        res = match_pair_sgm(img1, img2, tv, cfg)
+        ij, truth, err = _disparity_errors(res, d)
+        on_bottom = bottom[ij[:, 1], ij[:, 0]]
+        right = np.count_nonzero(on_bottom & (err < 1.0)) / bottom.sum()
+        if near_range:
+            assert right > 0.9, right
+        else:
+            assert right < 0.05, right  # beyond the search: none right
 
 
 def test_the_surface_median_removes_scatter_and_keeps_depth_edges_and_holes():
