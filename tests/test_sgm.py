@@ -611,10 +611,32 @@ def test_the_near_extension_follows_a_surface_without_gaps_and_stops_at_one():
     p = np.concatenate([surface, stray, plain, [20.0, 60.0]])  # and the far side, never followed
     textured = np.ones(len(p), bool)
     textured[len(surface) + len(stray)] = False
-    found = CoarseParallax(p, textured, step)
+    found = CoarseParallax(p[None, :].astype(np.float32), textured[None, :], step)
     assert extend_near(96.0, found) == 140.0
     assert extend_near(100.0 - MARGIN_COLUMNS - step - 0.5, found) == 100.0 - MARGIN_COLUMNS - step - 0.5
     assert extend_near(200.0, found) == 200.0  # the one estimate beyond lies 100 columns off
+
+
+def test_estimates_at_the_near_end_stay_only_where_the_coarse_pass_found_a_surface_that_near():
+    from sefm_recon.matching.sgm import CoarseParallax, drop_unsupported_near
+
+    _, _, tv, _ = _lateral_pair()
+    grid = line_grid(tv, (320, 240), (320, 240))
+    rows, cols = len(grid.phi), 60
+    near, end = 40.0, 48.0  # the SIFT points' near end; the search's before its end columns
+    disp = np.full((rows, cols), 30.0, np.float32)
+    disp[:, 10:20] = 55.0  # at the near end: a surface the coarse pass saw there ...
+    disp[:, 30:40] = 55.0  # ... and a plateau where it saw the surface at 30
+    disp[:, 50:55] = 55.0  # ... and where it found nothing
+    disp[0, 0] = -1.0  # invalid stays so
+    coarse = np.full((rows, cols), 30.0, np.float32)
+    coarse[:, 8:22] = 52.0
+    coarse[:, 50:55] = np.nan
+    found = CoarseParallax(coarse, np.ones((rows, cols), bool), 2.0, grid)  # the same grid: cell for cell
+    n = drop_unsupported_near(disp, grid, found, near, end, -1.0)
+    assert (disp[:, 10:20] == 55.0).all() and (disp[:, 20:30] == 30.0).all()
+    assert (disp[:, 30:40] == -1.0).all() and (disp[:, 50:55] == -1.0).all()
+    assert n == rows * 15 and disp[0, 0] == -1.0
 
 
 def test_the_search_follows_a_floor_nearer_than_its_sift_points():
