@@ -22,10 +22,10 @@ planes are filled (:mod:`.planes`).
 from __future__ import annotations
 
 import functools
-from dataclasses import dataclass
 import logging
 import math
 import time
+from dataclasses import dataclass
 from typing import Callable, NamedTuple
 
 import cv2
@@ -46,10 +46,11 @@ from .sefm import DenseMatches, depth_range
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["CoarseParallax", "choose_jump_penalty", "coarse_parallax", "coarse_range", "every_parallax", "extend_near", "drop_collisions", "drop_fattened_cells", "drop_flat_windows",
-           "drop_occluded_plain", "drop_outside_windows", "drop_range_ends", "drop_unsupported_near", "fit_plain_surfaces", "flat_windows",
-           "jump_ladder", "match_pair_sgm", "parallax_columns", "pixel_matches", "plain_windows", "search_range", "sift_parallax_columns",
-           "surface_median", "widen_range"]
+__all__ = ["choose_jump_penalty", "coarse_parallax", "coarse_range", "CoarseParallax", "drop_collisions",
+           "drop_fattened_cells", "drop_flat_windows", "drop_occluded_plain", "drop_outside_windows",
+           "drop_range_ends", "drop_unsupported_near", "every_parallax", "extend_near", "fit_plain_surfaces",
+           "flat_windows", "jump_ladder", "match_pair_sgm", "parallax_columns", "pixel_matches", "plain_windows",
+           "search_range", "sift_parallax_columns", "surface_median", "widen_range"]
 
 #: StereoSGBM's settings, those of the evaluation's planar SGBM peer: 5x5 blocks, OpenCV's
 #: recommended smoothness penalties P1 = 8 C B^2 and P2 = 32 C B^2 (C channels; the
@@ -214,7 +215,7 @@ def parallax_columns(tv: TwoView, grid: LineGrid, size1: tuple[int, int], distan
 def search_range(tv: TwoView, grid: LineGrid, size1: tuple[int, int], margin: float = 0.0,
                  sift_parallax: bool = True) -> tuple[float, float]:
     """(lo, hi) columns of parallax to search: the SIFT inliers' own column differences
-    (:func:`sift_parallax`), widened on each side by ``margin`` of their span and at least
+    (:func:`sift_parallax_columns`), widened on each side by ``margin`` of their span and at least
     :data:`MARGIN_COLUMNS`. With fewer than 8 inliers, all scene points from a fifth of
     the baseline to infinity (:func:`every_parallax`). Every range is then widened by
     :data:`END_COLUMNS` and one column more (whose estimates are dropped,
@@ -1119,10 +1120,10 @@ def match_pair_sgm(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config,
                             "up to %.0f", s_lo, s_hi, near)
                 hi = widen_range(s_lo, near, opt.range_margin)[1]
     if len(tv.kp1) < 8 and opt.coarse_range:  # no SIFT range: every depth, unless a coarse pass narrows it
-        found = coarse_range(img1, img2, tv, grid, cfg, lo, hi)
-        if found is not None:
+        spans = coarse_range(img1, img2, tv, grid, cfg, lo, hi)
+        if spans is not None:
             # widened as a SIFT range is (the margin's 8 columns exceed a coarse column up to 1/8 size)
-            c_lo, c_hi = widen_range(*found, opt.range_margin)
+            c_lo, c_hi = widen_range(*spans, opt.range_margin)
             lo, hi = max(lo, c_lo), min(hi, c_hi)
     min_d = int(math.floor(lo))
     num_d = int(math.ceil((hi - lo + 1) / 16.0)) * 16  # OpenCV: a multiple of 16
