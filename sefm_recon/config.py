@@ -259,6 +259,7 @@ class SgmConfig:
     collision_check: bool = True  #: of two surfaces' cells that reach one pixel of image 2, drop the one whose colour differs more
     occlusion_check: bool = True  #: drop the plain cells a nearer surface's run carries into the unmatched region on its occlusion side
     near_range: bool = True  #: extend the SIFT range towards the camera where a coarse pass finds a surface beyond it
+    far_check: bool = True  #: drop far end estimates of cells image 2 sees at no nearer parallax (unseen there)
     near_check: bool = True  #: drop estimates at the search's near end where the coarse pass found no surface that near
     coarse_range: bool = True  #: without 8 SIFT inliers, search what a coarse pass finds (false: every depth)
     bicubic: bool = True  #: bicubic line images (false: bilinear)

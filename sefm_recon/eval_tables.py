@@ -59,6 +59,7 @@ SGM_ABLATIONS: dict[str, list[str]] = {
     "+ range margin of a quarter span (8 columns alone)": ["sgm.range_margin=0.25"],
     "- range extended towards the camera by a coarse pass": ["sgm.near_range=false"],
     "- estimates at the near end without a coarse surface there dropped": ["sgm.near_check=false"],
+    "- estimates at the far end of cells image 2 sees at no nearer parallax dropped": ["sgm.far_check=false"],
     "- estimates at the ends of the search dropped": ["sgm.end_check=false"],
     "- estimates whose window reaches into an area of one value dropped": ["sgm.flat_check=false"],
     "- estimates whose window in image 2 reaches beyond it dropped": ["sgm.outside_check=false"],

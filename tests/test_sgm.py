@@ -639,6 +639,24 @@ def test_estimates_at_the_near_end_stay_only_where_the_coarse_pass_found_a_surfa
     assert n == rows * 15 and disp[0, 0] == -1.0
 
 
+def test_far_end_estimates_of_cells_image_2_sees_only_there_are_dropped():
+    from sefm_recon.matching.sgm import BLOCK, drop_unseen_far
+
+    shift, end = 10, 20.0  # line image 2 shifted by 10; the far end columns below 20
+    rows, width = 4, 60
+    disp = np.full((rows, width), 15.0, np.float32)  # every cell at the far end
+    disp[:, 40:] = 30.0  # and some within the range
+    span2 = np.tile(np.array([15, 200]), (rows, 1))  # image 2's cells from column 15
+    # a cell at x sees image 2 up to parallax x + shift - (15 + BLOCK // 2) + 0.5: below
+    # the far end's 20 for x <= 26
+    n = drop_unseen_far(disp, span2, shift, end, -1.0)
+    x = np.arange(width)
+    unseen = (x + shift - (15 + BLOCK // 2) + 0.5 < end) & (x < 40)
+    assert unseen.sum() == 27 and (disp[:, unseen] == -1.0).all()
+    assert (disp[:, ~unseen & (x < 40)] == 15.0).all() and (disp[:, 40:] == 30.0).all()
+    assert n == rows * unseen.sum()
+
+
 def test_the_search_follows_a_floor_nearer_than_its_sift_points():
     # A rectified pair of one slanted surface (a floor towards the camera): disparity
     # from 10 px at the top row to 100 px at the bottom. SIFT points on the top third
