@@ -1142,7 +1142,7 @@ def match_pair_sgm(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config,
         raise InputError("no epipolar line crosses both images: with this geometry the views do not overlap")
     opt = cfg.sgm
     lo, hi = search_range(tv, grid, size1, opt.range_margin, opt.sift_range)
-    found, near = None, hi
+    found = None  # the coarse pass towards the camera, where it runs (and `near`, its near end)
     if len(tv.kp1) >= 8 and opt.sift_range and (opt.near_range or opt.near_check):
         # a coarse pass for the surfaces nearer than the SIFT points
         s_lo, near = sift_parallax_columns(tv, grid)
@@ -1226,8 +1226,8 @@ def match_pair_sgm(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config,
     logger.info("SGM (%s): %d line pairs, %d dense (%d more at the ends of the search, %d on windows without "
                 "signal, %d on windows beyond image 2, %d sharing a pixel of image 2 with another surface, %d "
                 "carried into an unmatched plain region, %d far where image 2 sees no nearer parallax, %d near "
-                "without a coarse surface there and %d fattened at depth edges dropped), %d on plain windows fitted to their surface's plane, %d filled on plain "
-                "planes, %d valid",
+                "without a coarse surface there and %d fattened at depth edges dropped), %d on plain windows "
+                "fitted to their surface's plane, %d filled on plain planes, %d valid",
                 "4 full paths" if full else "3 directions", counts["line_pairs"], n_dense, n_ends, n_flat, n_out,
                 n_col, n_occ, n_far, n_near, n_fat, n_fit, n_planes, len(uv1))
     return DenseMatches(uv1, uv2, score, rows, X, counts, timings)
