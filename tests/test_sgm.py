@@ -171,7 +171,7 @@ def test_disparities_read_back_at_every_pixel_lie_on_its_epipolar_line(monkeypat
     # two surfaces side by side in the line images, and a hole the matcher left
     disp = np.where(np.arange(width)[None, :] < grid.pad + grid.columns // 2, near, far)
     disp[100:120, :] = -1.0
-    uv1, uv2, rows = pixel_matches(disp, 0.0, grid, tv, (320, 240), (320, 240))
+    uv1, uv2, X, rows = pixel_matches(disp, 0.0, grid, tv, (320, 240), (320, 240))
     assert len(uv1) > 0.75 * 320 * 240 and np.all(np.mod(uv1, 1.0) == 0.5)  # pixel centres, most of them
     assert len(np.unique(uv1, axis=0)) == len(uv1)  # one match a pixel
     # each match is the projection of a point on one of the two planes, never between them
@@ -182,6 +182,14 @@ def test_disparities_read_back_at_every_pixel_lie_on_its_epipolar_line(monkeypat
         err.append(np.linalg.norm(X2[:, :2] / X2[:, 2:] @ tv.K2[:2, :2].T + tv.K2[:2, 2] - uv2, axis=1))
     err = np.minimum(*err)
     assert np.percentile(err, 99) < 0.05 and err.max() < 0.5
+    # each point is where the pixel's ray meets its match's: it projects onto both, as the
+    # midpoint triangulation of the pair puts it
+    from sefm_recon.geometry.triangulate import project, triangulate
+
+    assert np.abs(project(tv.K1, np.eye(3), np.zeros(3), X) - uv1).max() < 1e-6
+    assert np.abs(project(tv.K2, tv.R, tv.t, X) - uv2).max() < 1e-6
+    X2, valid, _ = triangulate(tv.K1, tv.K2, tv.R, tv.t, uv1, uv2)
+    assert valid.all() and np.abs(X - X2).max() < 1e-9 * np.abs(X2).max()
     # no match from the hole's rows, except where a pixel's nearest row is outside it
     assert not np.any((rows > 101) & (rows < 118))
     # read back a few image rows at a time (as a large photo is): the same matches, in order
@@ -189,7 +197,7 @@ def test_disparities_read_back_at_every_pixel_lie_on_its_epipolar_line(monkeypat
 
     monkeypatch.setattr(sgm, "_CHUNK_PIXELS", 7 * 320 + 5)
     chunked = pixel_matches(disp, 0.0, grid, tv, (320, 240), (320, 240))
-    for a, b in zip(chunked, (uv1, uv2, rows)):
+    for a, b in zip(chunked, (uv1, uv2, X, rows)):
         assert np.array_equal(a, b)
 
 
@@ -207,7 +215,7 @@ def test_the_outermost_pixel_rows_read_back_as_every_other_row():
     # the outermost pixel centres a hair farther than half a row from the first (last) row
     for outer, nudge in ((239, 0.02), (0, -0.02)):  # (phi runs up the image)
         grid.phi = phi + nudge * grid.phi_step
-        uv1, _, _ = pixel_matches(_plane_disparities(tv, grid, width, 8.0), 0.0, grid, tv, (320, 240), (320, 240))
+        uv1, _, _, _ = pixel_matches(_plane_disparities(tv, grid, width, 8.0), 0.0, grid, tv, (320, 240), (320, 240))
         per_row = np.bincount(np.floor(uv1[:, 1]).astype(int), minlength=240)
         assert per_row[120] > 200 and per_row[outer] >= per_row[120] - 2  # (a corner's partner may leave image 2)
 
