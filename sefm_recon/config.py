@@ -258,7 +258,6 @@ class SgmConfig:
     edge_check: bool = True  #: drop the nearer surface's cell next to each depth edge (its windows fatten it)
     collision_check: bool = True  #: of two surfaces' cells that reach one pixel of image 2, drop the one whose colour differs more
     occlusion_check: bool = True  #: drop the plain cells a nearer surface's run carries into the unmatched region on its occlusion side
-    sift_check: bool = True  #: the SIFT range from the inliers whose parallax the coarse pass confirms at their place
     near_range: bool = True  #: extend the SIFT range towards the camera where a coarse pass finds a surface beyond it
     far_check: bool = True  #: drop far end estimates of cells image 2 sees at no nearer parallax (unseen there)
     near_check: bool = True  #: drop estimates at the search's near end where the coarse pass found no surface that near

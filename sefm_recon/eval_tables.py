@@ -57,7 +57,6 @@ SGM_ABLATIONS: dict[str, list[str]] = {
     "- speckle filter": ["sgm.speckle=false"],
     "- search range from the SIFT parallax (their depths x2 and /2)": ["sgm.sift_range=false"],
     "+ range margin of a quarter span (8 columns alone)": ["sgm.range_margin=0.25"],
-    "- SIFT range from the inliers the coarse pass confirms (all inliers)": ["sgm.sift_check=false"],
     "- range extended towards the camera by a coarse pass": ["sgm.near_range=false"],
     "- estimates at the near end without a coarse surface there dropped": ["sgm.near_check=false"],
     "- estimates at the far end of cells image 2 sees at no nearer parallax dropped": ["sgm.far_check=false"],

@@ -609,48 +609,6 @@ def test_a_coarse_pass_bounds_the_search_where_sift_gives_no_range():
     assert np.mean(err[seen] < 1.0) > 0.95 and seen.sum() > 0.85 * np.isfinite(d).sum()
 
 
-def test_sift_inliers_the_coarse_pass_contradicts_are_left_out_of_the_range():
-    # SIFT inliers on a surface 20 px away, three of them matched 80 px further along
-    # their epipolar lines (a like-looking place): they set the 99th percentile. Where the
-    # coarse pass found the surface at their places, they are left out; where it found
-    # nothing (NaN), an inlier stays.
-    from sefm_recon.matching.sgm import CoarseParallax, sift_parallax_columns
-
-    _, _, tv, _ = _lateral_pair()
-    grid = line_grid(tv, (320, 240), (320, 240))
-    kx, ky = np.meshgrid(np.arange(40, 280, 20) + 0.5, np.arange(30, 210, 20) + 0.5)
-    kp1 = np.column_stack([kx.ravel(), ky.ravel()])
-    d = np.full(len(kp1), 20.0)
-    d[:3] = 100.0
-
-    def columns(disparity):
-        phi, a1 = ray_angles(tv.K1, np.eye(3), grid.basis, kp1)
-        _, a2 = ray_angles(tv.K2, tv.R.T, grid.basis, kp1 - np.column_stack([disparity, 0 * disparity]))
-        return phi, grid.column(a1), grid.column(a1) - grid.column(a2)
-
-    phi, col, parallax = columns(d)
-    sift = TwoView(tv.K1, tv.K2, tv.R, tv.t, kp1, kp1 - np.column_stack([d, 0 * d]), len(kp1))
-    assert sift_parallax_columns(sift, grid)[1] > parallax[3:].max() + 50
-    coarse = np.full((len(grid.phi), grid.columns + 1), np.nan, np.float32)
-    rows, cols = np.round(grid.row(phi)).astype(int), np.round(col).astype(int)
-    coarse[rows[:2], cols[:2]] = columns(np.full(len(kp1), 20.0))[2][:2]  # not at the third's place
-    found = CoarseParallax(coarse, np.ones(coarse.shape, bool), 2.0, grid)  # the same grid: cell for cell
-    lo, hi = sift_parallax_columns(sift, grid, found)
-    assert lo == pytest.approx(np.percentile(parallax[2:], 1)) and hi == pytest.approx(np.percentile(parallax[2:], 99))
-    # the coarse pass confirming all of them leaves the range as it was
-    coarse[rows, cols] = parallax
-    assert sift_parallax_columns(sift, grid, found) == pytest.approx(sift_parallax_columns(sift, grid))
-
-
-def test_a_grid_row_of_an_angle_any_turn_away():
-    _, _, tv, _ = _lateral_pair()
-    grid = line_grid(tv, (320, 240), (320, 240))
-    k = np.arange(len(grid.phi))
-    for turn in (-2, 0, 1):
-        assert np.allclose(grid.row(grid.phi + turn * 2 * np.pi), k)
-    assert grid.row(grid.phi[0] - 0.5 * grid.phi_step) == 0.0 and grid.row(grid.phi[-1] + 1.0) == k[-1]
-
-
 def test_the_near_extension_follows_a_surface_without_gaps_and_stops_at_one():
     from sefm_recon.matching.sgm import MARGIN_COLUMNS, CoarseParallax, extend_near
 

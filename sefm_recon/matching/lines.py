@@ -74,13 +74,6 @@ class LineGrid:
         u = self.u_max - (np.asarray(col, np.float64) - self.pad) * self.u_step
         return 2.0 * np.arctan(np.exp(u))
 
-    def row(self, phi) -> np.ndarray:
-        """Fractional row of half-plane angles (radians, any turn), between the nearest rows
-        (clamped to the first and last)."""
-        mid = 0.5 * (self.phi[0] + self.phi[-1])  # each angle taken within half a turn of the rows' middle
-        phi = mid + np.mod(np.asarray(phi, np.float64) - mid + np.pi, 2.0 * np.pi) - np.pi
-        return np.interp(phi, self.phi, np.arange(len(self.phi)))
-
     def column(self, alpha) -> np.ndarray:
         """Fractional column of ray angles (radians), those nearer an epipole than ``edge``
         taken at ``edge``."""

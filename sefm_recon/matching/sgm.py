@@ -241,27 +241,12 @@ def every_parallax(tv: TwoView, grid: LineGrid, size1: tuple[int, int]) -> tuple
     return float(lo - END_COLUMNS - 1), float(hi + END_COLUMNS + 1)
 
 
-def sift_parallax_columns(tv: TwoView, grid: LineGrid, found: CoarseParallax | None = None) -> tuple[float, float]:
+def sift_parallax_columns(tv: TwoView, grid: LineGrid) -> tuple[float, float]:
     """(lo, hi) columns of parallax of the SIFT inliers (``tv.kp1``/``tv.kp2``, at least
-    one): their 1st and 99th percentiles, so that a stray inlier does not widen them.
-
-    With ``found`` (the coarse pass), the inliers whose parallax lies more than
-    :data:`MARGIN_COLUMNS` and one coarse column from the coarse estimate at their place
-    are left out (where it has one): an inlier lies on its epipolar line, but at a wrong
-    depth when SIFT matched a like-looking place (a repeated or plain pattern). On a
-    pair with few SIFT points a few of them are its 1st and 99th percentiles: Plastic
-    conv's 70 inliers gave -33..159 columns where the surfaces lie within 17..58.
-    """
-    p1, a1 = ray_angles(tv.K1, np.eye(3), grid.basis, tv.kp1)
+    one): their 1st and 99th percentiles, so that a stray inlier does not widen them."""
+    _, a1 = ray_angles(tv.K1, np.eye(3), grid.basis, tv.kp1)
     _, a2 = ray_angles(tv.K2, tv.R.T, grid.basis, tv.kp2)
-    parallax = grid.column(a1) - grid.column(a2)
-    if found is not None:
-        rows = np.clip(np.round(grid.row(p1)), 0, len(grid.phi) - 1).astype(np.intp)
-        there = found.at(grid, rows, np.round(grid.column(a1)).astype(np.intp))
-        agree = ~(np.abs(parallax - there) > MARGIN_COLUMNS + found.step)  # NaN: no estimate, kept
-        if agree.any():
-            parallax = parallax[agree]
-    lo, hi = np.percentile(parallax, [1, 99])
+    lo, hi = np.percentile(grid.column(a1) - grid.column(a2), [1, 99])
     return float(lo), float(hi)
 
 
@@ -1185,9 +1170,6 @@ def match_pair_sgm(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config,
         s_lo, near = sift_parallax_columns(tv, grid)
         nearest = parallax_columns(tv, grid, size1, (depth_range(tv, NEAR_DEPTH)[0],))[1]
         found = coarse_parallax(img1, img2, tv, grid, cfg, lo, max(hi, nearest + END_COLUMNS + 1))
-        if found is not None and opt.sift_check:  # the inliers the coarse pass confirms
-            s_lo, near = sift_parallax_columns(tv, grid, found)
-            lo, hi = widen_range(s_lo, near, opt.range_margin)
         if found is not None and opt.near_range:
             s_hi, near = near, extend_near(near, found)
             if near > hi - END_COLUMNS - 1:  # beyond the margin the SIFT range is searched with
