@@ -190,6 +190,7 @@ def test_disparities_read_back_at_every_pixel_lie_on_its_epipolar_line(monkeypat
     assert np.abs(project(tv.K2, tv.R, tv.t, X) - uv2).max() < 1e-6
     X2, valid, _ = triangulate(tv.K1, tv.K2, tv.R, tv.t, uv1, uv2)
     assert valid.all() and np.abs(X - X2).max() < 1e-9 * np.abs(X2).max()
+    assert len(X.base) == 320 * 240  # room after them for the plane fill's points (arrays.append_rows)
     # no match from the hole's rows, except where a pixel's nearest row is outside it
     assert not np.any((rows > 101) & (rows < 118))
     # read back a few image rows at a time (as a large photo is): the same matches, in order

@@ -5,16 +5,13 @@ from __future__ import annotations
 import numpy as np
 
 
-def triangulate(K1, K2, R, t, uv1, uv2, *, spare: int = 0):
+def triangulate(K1, K2, R, t, uv1, uv2):
     """Midpoint triangulation of matches in camera 1's frame.
 
     Camera 1 is at the origin with identity rotation, camera 2 at
     ``x_cam2 = R @ X + t``. Each point is the midpoint of the shortest segment
     between the two viewing rays.
 
-    Args:
-        spare: rows of room left (unwritten) after X's in the array it is a leading slice
-            of, for points appended later without copying X (:func:`sefm_recon.arrays.append_rows`).
     Returns:
         X (N, 3) points; valid (N,) bool: finite, in front of both cameras.
         angle (N,) triangulation angle, radians.
@@ -25,7 +22,7 @@ def triangulate(K1, K2, R, t, uv1, uv2, *, spare: int = 0):
     uv2 = np.ascontiguousarray(uv2, np.float64).reshape(-1, 2)
     R = np.asarray(R, np.float64)
     c2 = -R.T @ np.asarray(t, np.float64).reshape(3)
-    X = np.empty((len(uv1) + max(int(spare), 0), 3))[:len(uv1)]
+    X = np.empty((len(uv1), 3))
     valid, angle = triangulate_midpoint(np.linalg.inv(K1), np.linalg.inv(K2), np.ascontiguousarray(R.T), c2, uv1, uv2, X)
     return X, valid, angle
 
