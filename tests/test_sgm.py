@@ -44,19 +44,29 @@ def test_a_scene_point_lies_on_one_row_at_a_larger_angle_in_view_2(pose):
     assert lo - 1e-6 <= d.min() and d.max() <= hi + 1e-6
 
 
-def test_rows_are_at_most_the_row_spacing_apart():
-    tv = _two_view(rot_y(0.2), [-1.0, 0.1, 0.2])
+@pytest.mark.parametrize("R, t", [(rot_y(0.2), [-1.0, 0.1, 0.2]), (np.eye(3), [0.1, 0.0, -1.0])],
+                         ids=["turned", "forward"])
+def test_rows_are_at_most_the_row_spacing_apart_and_about_that_far(R, t):
+    tv = _two_view(R, t)
     grid = line_grid(tv, (320, 240), (320, 240))
     grid.pad = 0
     alpha = grid.alpha(np.arange(grid.columns))
+    widest = np.zeros(len(grid.phi) - 1)  # each row's largest gap to the next, in either image
     for K, Rc in ((tv.K1, np.eye(3)), (tv.K2, tv.R.T)):
         u, v, _ = project(K, Rc, rays(grid.basis, grid.phi[:, None], alpha[None, :]))
-        inside = (u >= 0) & (u < 320) & (v >= 0) & (v < 240)
+        # between the outermost pixel centres, which are what the rows are read back at
+        inside = (u >= 0.5) & (u <= 319.5) & (v >= 0.5) & (v <= 239.5)
         du, dv = np.diff(u, axis=0)[:, :-1], np.diff(v, axis=0)[:, :-1]  # to the next row
         tu, tv_ = np.diff(u, axis=1)[:-1], np.diff(v, axis=1)[:-1]  # along the row
         gap = np.abs(du * tv_ - dv * tu) / np.hypot(tu, tv_)  # distance between the lines
         both = (inside[1:] & inside[:-1])[:, :-1] & inside[:-1, 1:]
-        assert gap[both].max() <= ROW_SPACING_PX + 1e-3 and gap[both].max() > 0.5 * ROW_SPACING_PX
+        assert gap[both].max() <= ROW_SPACING_PX + 1e-3
+        widest = np.maximum(widest, np.where(both, gap, 0.0).max(axis=1))
+    # no nearer than that needs: rows uniform in phi lie 0.6 px apart on average about the
+    # forward motion's epipole, and a line near an image's corner is short (its far end
+    # is not where the rows' spacing peaks), so a tenth of them may lie nearer
+    seen = widest > 0
+    assert np.percentile(widest[seen], 10) > 0.85 * ROW_SPACING_PX
 
 
 def test_line_images_of_a_shifted_image_are_shifted_rows():
@@ -100,13 +110,21 @@ def test_image_2s_spans_hold_only_its_own_pixels():
     flat = np.full((240, 320), 200, np.uint8)
     u, v, front = project(tv.K2, tv.R.T, rays(grid.basis, grid.phi[:, None], grid.alpha(np.arange(width) - shift2)[None, :]))
     beyond = np.maximum.reduce([-u, u - 320, -v, v - 240])  # px beyond image 2's edge (COLMAP positions)
-    between = front & (u >= 0.5) & (u <= 319.5) & (v >= 0.5) & (v <= 239.5)  # between its pixel centres
     half = BLOCK // 2
-    padded = np.pad(between, ((half, half), (1, 1)), constant_values=True)
-    own = np.ones_like(between)
-    for dr in range(-half, half + 1):
-        for dc in (-1, 0, 1):
-            own &= padded[half + dr:half + dr + between.shape[0], 1 + dc:1 + dc + width]
+
+    def own_cells(tol):
+        """the cells whose window lies between image 2's pixel centres, ``tol`` px inside them"""
+        between = front & (u >= 0.5 + tol) & (u <= 319.5 - tol) & (v >= 0.5 + tol) & (v <= 239.5 - tol)
+        padded = np.pad(between, ((half, half), (1, 1)), constant_values=True)
+        own = np.ones_like(between)
+        for dr in range(-half, half + 1):
+            for dc in (-1, 0, 1):
+                own &= padded[half + dr:half + dr + between.shape[0], 1 + dc:1 + dc + width]
+        return own
+
+    # a sample within float32's rounding of a pixel centre (the maps cv2.remap reads) may
+    # fall either way
+    surely, maybe = own_cells(1e-4), own_cells(-1e-4)
     for bicubic in (True, False):
         _, L2, span2 = line_images(flat, flat, tv, grid, width, shift2=shift2, bicubic=bicubic, spans=True,
                                    window=BLOCK)
@@ -114,7 +132,7 @@ def test_image_2s_spans_hold_only_its_own_pixels():
         assert (L2[~front | (beyond > 0.0)] == 0).all()
         inside = (np.arange(width)[None, :] >= span2[:, :1]) & (np.arange(width)[None, :] <= span2[:, 1:])
         assert inside.sum() > 0.5 * L2.size
-        np.testing.assert_array_equal(inside, own)
+        assert (inside >= surely).all() and (inside <= maybe).all() and (surely != maybe).sum() < 10
 
 
 def test_windows_beyond_image_2_are_dropped():
@@ -202,6 +220,37 @@ def test_disparities_read_back_at_every_pixel_lie_on_its_epipolar_line(monkeypat
         assert np.array_equal(a, b)
 
 
+def test_disparities_read_back_all_round_an_epipole_inside_the_image():
+    """Forward motion: the rows go all round the epipole, spaced by what each direction
+    needs; a plane's disparities read back at every pixel that image 2 sees, in every
+    direction from the epipole (across the rows' first and last), onto the plane's points."""
+    from sefm_recon.matching.sgm import pixel_matches
+
+    tv = _two_view(np.eye(3), [0.1, 0.0, -1.0])  # camera 2 1 unit nearer the plane at 8
+    grid = line_grid(tv, (320, 240), (320, 240))
+    assert grid.joined.all()  # a closed circle of rows
+    grid.pad = 40
+    width = grid.pad + grid.columns + 1
+    uv1, uv2, X, _ = pixel_matches(_plane_disparities(tv, grid, width, 8.0), 0.0, grid, tv, (320, 240), (320, 240))
+    ray = np.column_stack([uv1, np.ones(len(uv1))]) @ np.linalg.inv(tv.K1).T
+    X2 = (ray * 8.0 / ray[:, 2:]) @ tv.R.T + tv.t
+    err = np.linalg.norm(X2[:, :2] / X2[:, 2:] @ tv.K2[:2, :2].T + tv.K2[:2, 2] - uv2, axis=1)
+    assert np.percentile(err, 99) < 0.05 and err.max() < 0.5
+    # the pixels image 2 sees (the plane 8 / 7 times larger there), minus the epipole's few
+    xs, ys = np.meshgrid(np.arange(320) + 0.5, np.arange(240) + 0.5)
+    p = np.column_stack([xs.ravel(), ys.ravel()])
+    e = tv.K1 @ (-tv.R.T @ tv.t)
+    e = e[:2] / e[2]
+    seen = np.all(np.abs((p - e) * 8.0 / 7.0 + e - [160, 120]) < [159.5, 119.5], axis=1)
+    matched = np.zeros(len(p), bool)
+    matched[np.floor(uv1[:, 1]).astype(int) * 320 + np.floor(uv1[:, 0]).astype(int)] = True
+    assert matched[~seen].mean() < 0.05
+    # in every direction from the epipole
+    sector = (np.degrees(np.arctan2(*(p - e).T[::-1])) // 10).astype(int)
+    for k in np.unique(sector[seen]):
+        assert matched[seen & (sector == k)].mean() > 0.97
+
+
 def test_the_outermost_pixel_rows_read_back_as_every_other_row():
     """The first and last rows of the line images lie half a row inside image 1's outermost
     pixel centres, which are as near the row beyond that does not exist: they are matched
@@ -215,7 +264,7 @@ def test_the_outermost_pixel_rows_read_back_as_every_other_row():
     phi = grid.phi.copy()
     # the outermost pixel centres a hair farther than half a row from the first (last) row
     for outer, nudge in ((239, 0.02), (0, -0.02)):  # (phi runs up the image)
-        grid.phi = phi + nudge * grid.phi_step
+        grid.phi = phi + nudge * grid.reach[0]
         uv1, _, _, _ = pixel_matches(_plane_disparities(tv, grid, width, 8.0), 0.0, grid, tv, (320, 240), (320, 240))
         per_row = np.bincount(np.floor(uv1[:, 1]).astype(int), minlength=240)
         assert per_row[120] > 200 and per_row[outer] >= per_row[120] - 2  # (a corner's partner may leave image 2)
@@ -381,16 +430,20 @@ def test_the_cells_dropped_where_two_surfaces_reach_one_pixel_are_wrong_far_more
     assert wrong[at].mean() > 5 * wrong.mean()
 
 
-def _one_row_occlusion(before: float, strip_colour: int, gap_start: int = 40):
+def _one_row_occlusion(before: float, strip_colour: int, gap_start: int = 40, holes=(), hole_parallax=30.0):
     """A row: a valid cell (parallax ``before``) at ``gap_start - 1``, unmatched cells up to
     column 50, then a run at parallax 30: plain cells of ``strip_colour`` on 50 .. 55, the
-    nearer surface's texture from 56 on. The gap's colour is 100. Returns the cells dropped."""
+    nearer surface's texture from 56 on; the cells ``holes`` unmatched and the run's cells
+    after them at ``hole_parallax``. The gap's colour is 100. Returns the cells dropped."""
     from sefm_recon.matching.sgm import drop_occluded_plain, plain_windows
 
     bad = -1.0
     disp = np.full((5, 100), bad, np.float32)
     disp[:, gap_start - 1] = before
     disp[:, 50:80] = 30.0
+    if holes:
+        disp[:, max(holes) + 1:80] = hole_parallax
+        disp[:, list(holes)] = bad
     L1 = np.full((5, 100, 3), 100, np.uint8)
     L1[:, 50:56] = strip_colour
     L1[:, 56:80] = np.random.default_rng(0).integers(0, 255, (5, 24, 3))
@@ -415,6 +468,13 @@ def test_plain_cells_a_nearer_surface_carries_into_an_unmatched_region_are_dropp
     assert _one_row_occlusion(40.0, 100) == []
     # the gap, seen with the run's parallax, reaches beyond image 2's left edge: kept
     assert _one_row_occlusion(10.0, 100, gap_start=25) == []
+    # SGM left two cells unmatched where the strip meets the texture: the run goes on
+    # across them on its surface, and the strip is dropped up to the texture's windows
+    assert _one_row_occlusion(10.0, 100, holes=(54, 55)) == [50, 51, 52, 53]
+    # ... but not across three cells, nor to another surface: the strip is a run of its
+    # own, with no edge in it
+    assert _one_row_occlusion(10.0, 100, holes=(52, 53, 54)) == []
+    assert _one_row_occlusion(10.0, 100, holes=(54, 55), hole_parallax=25.0) == []
 
 
 def test_the_plain_cells_dropped_beside_an_occlusion_are_wrong_far_more_often():

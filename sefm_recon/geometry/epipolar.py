@@ -138,15 +138,21 @@ def _phi_arc(phi: np.ndarray, full: bool) -> tuple[float, float]:
     return float(start), float(2 * np.pi - gaps[k])
 
 
+def phi_steps(K, Rc, basis, points, spacing: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+    """``(phi, step)`` (N,) at image points (N, 2) of a camera: the half-plane angle
+    through each, and the turn of it (radians) that moves its line ``spacing`` px there
+    (its gradient over half-pixel differences)."""
+    phi0, _ = ray_angles(K, Rc, basis, points)
+    phix, _ = ray_angles(K, Rc, basis, points + [0.5, 0.0])
+    phiy, _ = ray_angles(K, Rc, basis, points + [0.0, 0.5])
+    wrap = lambda d: np.abs((d + np.pi) % (2 * np.pi) - np.pi)  # noqa: E731
+    return phi0, spacing * np.hypot(wrap(phix - phi0), wrap(phiy - phi0)) / 0.5
+
+
 def _phi_step(K, Rc, basis, width, height, spacing) -> float:
     """Largest phi step that keeps neighbouring lines within ``spacing`` px on the image border."""
-    p = _border(width, height, 256)
-    phi0, _ = ray_angles(K, Rc, basis, p)
-    phix, _ = ray_angles(K, Rc, basis, p + [0.5, 0.0])
-    phiy, _ = ray_angles(K, Rc, basis, p + [0.0, 0.5])
-    wrap = lambda d: np.abs((d + np.pi) % (2 * np.pi) - np.pi)  # noqa: E731
-    grad = np.hypot(wrap(phix - phi0), wrap(phiy - phi0)) / 0.5  # radians per pixel
-    return float(spacing * np.min(grad[grad > 0]))
+    step = phi_steps(K, Rc, basis, _border(width, height, 256), spacing)[1]
+    return float(np.min(step[step > 0]))
 
 
 def _clip_half_lines(K, Rc, basis, phi, width, height):

@@ -499,7 +499,13 @@ def drop_occluded_plain(disp: np.ndarray, L1: np.ndarray, plain: np.ndarray, spa
     test's noise), up to the intensity edge where the run's own surface begins; only where
     the run is the nearer surface (a valid cell before the gap lies more than
     ``2 * LR_MAX_DIFF`` columns farther) and the gap is not explained by image 2's edge
-    (mapped with the run's parallax, it lies inside image 2's windows).
+    (mapped with the run's parallax, it lies inside image 2's windows). A run goes on
+    across up to ``BLOCK // 2`` unmatched cells to a cell within ``2 * LR_MAX_DIFF``
+    columns of its last: SGM's left-right check drops single cells at the nearer
+    surface's own intensity edge, which ended the run before the edge and left the strip
+    in place (the lateral test pair: 78 % of the hidden strip matched with the check, 36 %
+    with the run bridged; the real pairs +0.0002 / -0.0002, the generated +0.0005 /
+    -0.0005).
 
     Measured (p@1 / cov@1, true pose): the 60 real cases +0.0034 / -0.0014 (Midd2 conv
     0.841 -> 0.853, Plastic unrect 0.844 -> 0.851, Monopoly +0.017-0.023), the 20 generated
@@ -544,6 +550,14 @@ def _drop_occluded_plain(disp, L1, plain, span2, shift, invalid, tol, jump, half
             a = c  # a run of valid cells a .. c - 1 after a gap from last + 1
             while c < width and row[c] > invalid:
                 c += 1
+                # across a gap of up to ``half`` cells to a cell on the same surface: one
+                # run (SGM's left-right check drops single cells at the surface's own
+                # intensity edges)
+                g = c
+                while g < width and g - c < half and row[g] <= invalid:
+                    g += 1
+                if c < g < width and row[g] > invalid and abs(row[g] - row[c - 1]) <= jump:
+                    c = g
             nearer = last >= 0 and a > last + 1 and row[last] < row[a] - jump
             inside = (last + 1) - (row[a] - shift) >= span2[r, 0] + half
             if nearer and inside:
@@ -552,7 +566,7 @@ def _drop_occluded_plain(disp, L1, plain, span2, shift, invalid, tol, jump, half
                     k += 1
                 if a < k < c:  # an edge ends the plain strip inside the run
                     for x in range(a, k):
-                        drop[x] = True
+                        drop[x] = row[x] > invalid
             last = c - 1
         count[r] = _set_dropped(row, drop, invalid)
     return count
@@ -737,9 +751,7 @@ def _fit_plain(disp, todo, whole, invalid, half, tol, need):
 class GridScalars(NamedTuple):
     """What :func:`_read_back` needs of a :class:`.lines.LineGrid` and the disparity map."""
 
-    phi0: float  #: ``phi`` of row 0, radians
-    phi_step: float  #: between neighbouring uniform row slots, radians
-    full: bool  #: the rows go all round the epipole (slot indices wrap)
+    phi0: float  #: ``phi`` of row 0, radians (the rows' angles rise from it)
     u_max: float
     u_step: float
     pad: float
@@ -749,7 +761,7 @@ class GridScalars(NamedTuple):
 
 
 @njit(parallel=True, cache=True)
-def _read_back(disp, row_of, g, basis, K1inv, P2, baseline, w1, y0, w2, h2, uv2, X, row):
+def _read_back(disp, xs, reach, joined, g, basis, K1inv, P2, baseline, w1, y0, w2, h2, uv2, X, row):
     """For pixel ``i`` of image 1 (column ``i % w1``, row ``y0 + i // w1``): its ray's
     ``(phi, alpha)``, the disparity of the line images at its fractional row and
     column, interpolated over the neighbours on the nearest cell's surface, the
@@ -764,15 +776,16 @@ def _read_back(disp, row_of, g, basis, K1inv, P2, baseline, w1, y0, w2, h2, uv2,
     1e-6 of parallel (as there) get no match.
 
     The cell nearest the pixel sets the surface (the pixel is unmatched when it is
-    invalid: the matcher's checks rejected it). ``row_of`` (S,) maps uniform row slots
-    to rows of ``disp`` (-1: slot not kept); ``K1inv`` (3, 3) maps pixels to rays;
-    ``P2`` (3, 3) = ``K2 R`` projects camera-1-axes rays into image 2.
+    invalid: the matcher's checks rejected it). ``xs`` (rows,) the rows' ``phi`` less
+    ``g.phi0`` (rising), ``reach`` and ``joined`` the grid's (:class:`.lines.LineGrid`);
+    ``K1inv`` (3, 3) maps pixels to rays; ``P2`` (3, 3) = ``K2 R`` projects
+    camera-1-axes rays into image 2.
     """
     n = row.shape[0]
     H, W = disp.shape
-    S = row_of.shape[0]
     two_pi = 2.0 * np.pi
-    circle = two_pi / g.phi_step
+    last = H - 1
+    circle = joined[last]  # the rows go all round the epipole
     # Each ray's alpha is handled by its half-angle tangent tan(alpha / 2): it gives the
     # column (its log), the test against the epipole margin (alpha within ``edge`` of 0 or
     # pi) and image 2's ray (alpha's cosine and sine) without trigonometric calls: the
@@ -796,27 +809,32 @@ def _read_back(disp, row_of, g, basis, K1inv, P2, baseline, w1, y0, w2, h2, uv2,
         c = g.pad + (g.u_max - np.log(th)) / g.u_step
         x = phi - g.phi0
         x -= two_pi * np.floor(x / two_pi)
-        kf = x / g.phi_step
-        if not g.full and kf > 0.5 * (S - 1 + circle):  # just below row 0, not past the last row
-            kf -= circle
-        k0 = int(np.floor(kf))
-        wk = kf - k0
-        q0 = -1
-        q1 = -1
-        if g.full:
-            q0 = row_of[k0 % S]
-            q1 = row_of[(k0 + 1) % S]
+        if not circle and x > 0.5 * (xs[last] + two_pi):  # just below row 0, not past the last row
+            x -= two_pi
+        # the rows about the ray: q0 at or below it, q1 above (the first, 2 pi on, after the last)
+        q0 = np.searchsorted(xs, x, side="right") - 1
+        q1 = q0 + 1
+        x0 = xs[q0] if q0 >= 0 else 0.0
+        x1 = two_pi if q1 > last else xs[q1]
+        if q1 > last:
+            q1 = 0 if circle else -1
+            x1 += xs[0]
+        if q0 >= 0 and q1 >= 0 and joined[q0]:
+            wk = (x - x0) / (x1 - x0)
         else:
-            if 0 <= k0 < S:
-                q0 = row_of[k0]
-            if 0 <= k0 + 1 < S:
-                q1 = row_of[k0 + 1]
+            # a gap between rows, or beyond the first or last: the first and last rows
+            # lie half a row inside image 1's outermost pixel centres, which are as near
+            # the row beyond that does not exist; a row's cells reach its spacing
+            # (``reach``) beyond it, and the nearer row that reaches the ray takes it
+            if q0 >= 0 and x - x0 > reach[q0]:
+                q0 = -1
+            if q1 >= 0 and x1 - x > reach[q1]:
+                q1 = -1
+            wk = 0.0 if q0 >= 0 and (q1 < 0 or x - x0 <= x1 - x) else 1.0
         c0 = int(np.floor(c))
         wc = c - c0
         # the cell nearest the pixel sets the surface: where the matcher rejected it
-        # (left-right check, uniqueness, speckle), the pixel stays unmatched. The first
-        # and last rows lie half a row inside image 1's outermost pixel centres, which
-        # are as near the row beyond that does not exist: they take the row there is.
+        # (left-right check, uniqueness, speckle), the pixel stays unmatched
         rn = q0 if (wk < 0.5 and q0 >= 0) or q1 < 0 else q1
         cn = c0 + (1 if wc >= 0.5 else 0)
         if rn < 0 or cn < 0 or cn >= W or disp[rn, cn] < g.min_disparity:
@@ -908,13 +926,11 @@ def pixel_matches(disp: np.ndarray, min_disparity: float, grid: LineGrid, tv: Tw
     the leading slice of an array of one row a pixel of image 1 (the room after it takes
     matches appended later without a copy, :func:`sefm_recon.arrays.append_rows`).
     """
-    k = np.rint((grid.phi - grid.phi[0]) / grid.phi_step).astype(np.int64)
-    slots = int(round(2 * np.pi / grid.phi_step))
-    full = len(grid.phi) > 1 and k[-1] + 1 >= slots  # the rows close the circle
-    row_of = np.full(slots if full else k[-1] + 1, -1, np.int64)
-    row_of[k] = np.arange(len(k))
-    g = GridScalars(float(grid.phi[0]), float(grid.phi_step), bool(full), float(grid.u_max), float(grid.u_step),
-                    float(grid.pad), float(grid.edge), float(min_disparity), bool(interpolate))
+    xs = np.ascontiguousarray(grid.phi - grid.phi[0], np.float64)
+    reach = np.ascontiguousarray(grid.reach, np.float64)
+    joined = np.ascontiguousarray(grid.joined, np.bool_)
+    g = GridScalars(float(grid.phi[0]), float(grid.u_max), float(grid.u_step), float(grid.pad), float(grid.edge),
+                    float(min_disparity), bool(interpolate))
     P2 = np.ascontiguousarray(tv.K2 @ tv.R)
     basis = np.ascontiguousarray(grid.basis, np.float64)
     K1inv = np.ascontiguousarray(np.linalg.inv(tv.K1))
@@ -931,7 +947,7 @@ def pixel_matches(disp: np.ndarray, min_disparity: float, grid: LineGrid, tv: Tw
     m = 0
     for y0 in range(0, h, rows_per_chunk):
         n = w * (min(h, y0 + rows_per_chunk) - y0)
-        _read_back(disp, row_of, g, basis, K1inv, P2, baseline, w, y0, float(size2[0]), float(size2[1]), uv2[:n],
+        _read_back(disp, xs, reach, joined, g, basis, K1inv, P2, baseline, w, y0, float(size2[0]), float(size2[1]), uv2[:n],
                    X[:n], row[:n])
         m = _compact(uv2[:n], X[:n], row[:n], w, y0, out1, out2, out_X, out_r, m)
     return out1[:m], out2[:m], out_X[:m], out_r[:m]
