@@ -815,10 +815,9 @@ def _read_back(disp, xs, reach, joined, g, basis, K1inv, P2, baseline, w1, y0, w
         q0 = np.searchsorted(xs, x, side="right") - 1
         q1 = q0 + 1
         x0 = xs[q0] if q0 >= 0 else 0.0
-        x1 = two_pi if q1 > last else xs[q1]
+        x1 = xs[q1] if q1 <= last else two_pi  # (xs[0] = 0)
         if q1 > last:
             q1 = 0 if circle else -1
-            x1 += xs[0]
         if q0 >= 0 and q1 >= 0 and joined[q0]:
             wk = (x - x0) / (x1 - x0)
         else:
