@@ -472,8 +472,11 @@ def test_plain_cells_a_nearer_surface_carries_into_an_unmatched_region_are_dropp
     # the surface before the gap as near (or nearer): no occlusion strip there
     assert _one_row_occlusion(29.0, 100) == []
     assert _one_row_occlusion(40.0, 100) == []
-    # the gap, seen with the run's parallax, reaches beyond image 2's left edge: kept
+    # the gap, seen with the run's parallax, reaches beyond image 2's left edge where the
+    # hidden strip (20 columns of parallax difference) would lie: kept
     assert _one_row_occlusion(10.0, 100, gap_start=25) == []
+    # ... but a strip 5 columns wide lies inside image 2, whatever the gap's far end: dropped
+    assert _one_row_occlusion(25.0, 100, gap_start=25) == [50, 51, 52, 53, 54, 55]
     # SGM left two cells unmatched where the strip meets the texture: the run goes on
     # across them on its surface, and the strip is dropped up to the texture's windows
     assert _one_row_occlusion(10.0, 100, holes=(54, 55)) == [50, 51, 52, 53]
