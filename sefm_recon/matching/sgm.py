@@ -497,12 +497,12 @@ def drop_occluded_plain(disp: np.ndarray, L1: np.ndarray, plain: np.ndarray, spa
     cells at the start of a run that are plain (:func:`plain_windows`) and of the colour of
     the unmatched cell before the run, each channel within :data:`PLAIN_LEVELS` (the plain
     test's noise), and after them up to ``BLOCK // 2`` cells more of that colour, up to the
-    intensity edge where the run's own surface begins; only where
-    the run is the nearer surface (a valid cell before the gap lies more than
-    ``2 * LR_MAX_DIFF`` columns farther) and the gap is not explained by image 2's edge:
-    mapped with the run's parallax, its cells where the hidden strip lies (as many before
-    the run as the two surfaces' parallax difference, the strip's width, or the whole gap
-    where that is narrower) lie inside image 2's windows. A run goes on
+    intensity edge where the run's own surface begins; only where the run is the nearer
+    surface (a valid cell before the gap lies more than ``2 * LR_MAX_DIFF`` columns
+    farther) and the gap is not explained by image 2's edge: mapped with the run's
+    parallax, its cells from the one before the hidden strip on (the strip: as many cells
+    before the run as the two surfaces' parallax difference; the whole gap where that is
+    narrower) lie inside image 2's windows. A run goes on
     across up to ``BLOCK // 2`` unmatched cells to a cell within ``2 * LR_MAX_DIFF``
     columns of its last: SGM's left-right check drops single cells at the nearer
     surface's own intensity edge, which ended the run before the edge and left the strip
@@ -573,8 +573,9 @@ def _drop_occluded_plain(disp, L1, plain, span2, shift, invalid, tol, jump, half
                 if c < g < width and row[g] > invalid and abs(row[g] - row[c - 1]) <= jump:
                     c = g
             nearer = last >= 0 and a > last + 1 and row[last] < row[a] - jump
-            # the gap's cells that image 2 must see: those where the hidden strip lies, as
-            # many before the run as the parallax difference, or the whole gap
+            # the gap's cells that image 2 must see: from the cell before the hidden strip
+            # (as many cells as the parallax difference, just before the run) on, or the
+            # whole gap where it is narrower
             first = float(last + 1)
             if nearer:
                 first = max(first, a - 1 - (row[a] - row[last]))
