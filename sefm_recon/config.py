@@ -258,6 +258,7 @@ class SgmConfig:
     edge_check: bool = True  #: drop the nearer surface's cell next to each depth edge (its windows fatten it)
     collision_check: bool = True  #: of two surfaces' cells that reach one pixel of image 2, drop the one whose colour differs more
     occlusion_check: bool = True  #: drop the plain cells a nearer surface's run carries into the unmatched region on its occlusion side
+    carried_check: bool = True  #: drop the plain cells of a farther surface's colour a nearer surface carries across a depth jump, up to its intensity edge
     near_range: bool = True  #: extend the SIFT range towards the camera where a coarse pass finds a surface beyond it
     far_check: bool = True  #: drop far end estimates of cells image 2 sees at no nearer parallax (unseen there)
     near_check: bool = True  #: drop estimates at the search's near end where the coarse pass found no surface that near

@@ -66,6 +66,7 @@ SGM_ABLATIONS: dict[str, list[str]] = {
     "- the nearer surface's cell at each depth edge dropped": ["sgm.edge_check=false"],
     "- of two surfaces reaching one pixel of image 2, the one whose colour differs dropped": ["sgm.collision_check=false"],
     "- plain cells a nearer surface carries into an unmatched region dropped": ["sgm.occlusion_check=false"],
+    "- plain cells a nearer surface carries across a depth jump dropped": ["sgm.carried_check=false"],
     "- bicubic line images (bilinear)": ["sgm.bicubic=false"],
     "- interpolated read-back at each pixel (nearest cell)": ["sgm.interpolate=false"],
     "- median over each surface": ["sgm.median=false"],
