@@ -609,27 +609,29 @@ def drop_carried_plain(disp: np.ndarray, L1: np.ndarray, plain: np.ndarray, inva
     Midd2's lampshade, on image 2's visible side, where :func:`drop_occluded_plain` does not
     look: no unmatched strip lies between them). A true depth edge lies on an intensity
     edge; a jump on a plain region of one colour does not. At each jump of more than
-    ``2 * LR_MAX_DIFF`` columns between valid cells of a row (across up to ``BLOCK // 2``
-    unmatched cells), dropped are the nearer side's cells, walking away from the jump, that
-    are plain (:func:`plain_windows`) and of the farther cell's colour (each channel within
-    :data:`PLAIN_LEVELS`; the farther cell plain too), then up to ``BLOCK // 2`` more of
-    that colour (their windows reach the edge), all on the nearer side's surface (within
-    ``2 * LR_MAX_DIFF`` columns of its first cell); only where the walk ends at an
-    intensity edge inside that surface: a valid cell on it, of another colour and not
-    plain. A plain surface of another colour, a slow shading ramp (no window there is not
-    plain) and a surface that ends without an edge keep their cells.
+    ``2 * LR_MAX_DIFF`` columns between consecutive valid cells of a row (neighbours, or
+    across unmatched cells: SGM's checks leave gaps beside such bands), dropped are the
+    nearer side's cells, walking away from the jump, that are plain (:func:`plain_windows`)
+    and of the farther cell's colour (each channel within :data:`PLAIN_LEVELS`; the farther
+    cell plain too), then up to ``BLOCK // 2`` more of that colour (their windows reach the
+    edge), all on the nearer side's surface (within ``2 * LR_MAX_DIFF`` columns of its
+    first cell); only where the walk ends at an intensity edge inside that surface: a valid
+    cell on it, of another colour and not plain. A plain surface of another colour, a slow
+    shading ramp (no window there is not plain) and a surface that ends without an edge
+    keep their cells.
 
     Measured (p@1 / p@3 / cov@1, true pose): the 60 real cases 0.9437 / 0.9686 / 0.8810 ->
-    0.9455 / 0.9702 / 0.8806 (Midd1 +0.006, Lampshade2 and Monopoly +0.003-0.006 of
-    precision; no case's coverage down by more than 0.006); without the edge's not-plain
-    test 0.9457 / 0.9705 / 0.8777 (the white cloth of Bowling1, a slanted plain surface
-    with steps of a few columns, lost 0.02 of coverage); across the lines as well (the
-    same walk over the columns of the line images, without the not-plain test) 0.9462 /
-    0.9709 / 0.8761. The 20 generated seeds 0.8672 / 0.9325 / 0.6585 -> 0.8674 / 0.9327 /
-    0.6580, each within 0.002. Of the cells it drops on Midd1 and Bowling1 (rect), 83-86 %
-    were more than 3 px off; where a wrong farther estimate lies inside a plain region, the
-    jump is that estimate's, and the walk drops the region's right cells instead (the
-    lateral test pair: 411 cells, 15 % of them wrong).
+    0.9466 / 0.9712 / 0.8798 (Midd1 +0.010-0.012, Midd2 +0.008-0.011, Monopoly +0.008-0.009
+    of precision; Plastic -0.010 to -0.016 of coverage); the 20 generated seeds 0.8672 /
+    0.9325 / 0.6585 -> 0.8676 / 0.9329 / 0.6577, each within 0.002. Variants, all with the
+    jumps across at most ``BLOCK // 2`` unmatched cells (real cases): that alone 0.9455 /
+    0.9702 / 0.8806; without the edge's not-plain test 0.9457 / 0.9705 / 0.8777 (the white
+    cloth of Bowling1, a slanted plain surface with steps of a few columns, lost 0.02 of
+    coverage); without it and across the lines as well (the same walk over the columns of
+    the line images) 0.9462 / 0.9709 / 0.8761. Of the cells that variant drops on Midd1 and
+    Bowling1 (rect), 83-86 % were more than 3 px off. Where a wrong farther estimate lies
+    inside a plain region, the jump is that estimate's, and the walk drops the region's
+    right cells instead (the lateral test pair: 605 cells dropped, 22 % of them wrong).
 
     ``disp`` (rows, width) float32 parallax in columns, invalid at or below ``invalid``;
     ``L1`` (rows, width[, channels]) uint8 line image 1; ``plain`` (rows, width) bool.
@@ -650,8 +652,9 @@ def _drop_carried_plain(disp, L1, plain, invalid, tol, jump, half):
         for q in range(width):
             if row[q] <= invalid:
                 continue
-            if p >= 0 and q - p - 1 <= half and abs(row[q] - row[p]) > jump:
-                # walk from the nearer side's first cell away from the jump
+            if p >= 0 and abs(row[q] - row[p]) > jump:
+                # a jump between neighbours or across unmatched cells: walk from the
+                # nearer side's first cell away from it
                 if row[q] > row[p]:
                     far, start, step = p, q, 1
                 else:
