@@ -548,6 +548,12 @@ def _same_colour(L1, r, c, o, tol):
     return True
 
 
+@njit(cache=True)
+def _on_surface(row, k, ref, invalid, jump):
+    """Cell ``k`` lies in ``row``, is valid and within ``jump`` columns of cell ``ref``."""
+    return 0 <= k < row.shape[0] and row[k] > invalid and abs(row[k] - row[ref]) <= jump
+
+
 @njit(parallel=True, cache=True)
 def _drop_occluded_plain(disp, L1, plain, span2, shift, invalid, tol, jump, half):
     rows, width = disp.shape
@@ -570,7 +576,7 @@ def _drop_occluded_plain(disp, L1, plain, span2, shift, invalid, tol, jump, half
                 g = c
                 while g < width and g - c < half and row[g] <= invalid:
                     g += 1
-                if c < g < width and row[g] > invalid and abs(row[g] - row[c - 1]) <= jump:
+                if c < g and _on_surface(row, g, c - 1, invalid, jump):
                     c = g
             nearer = last >= 0 and a > last + 1 and row[last] < row[a] - jump
             # the gap's cells that image 2 must see: from the cell before the hidden strip
@@ -661,17 +667,15 @@ def _drop_carried_plain(disp, L1, plain, invalid, tol, jump, half):
                     far, start, step = q, p, -1
                 if plain[r, far]:
                     k = start
-                    while (0 <= k < width and row[k] > invalid and abs(row[k] - row[start]) <= jump
-                           and plain[r, k] and _same_colour(L1, r, k, far, tol)):
+                    while (_on_surface(row, k, start, invalid, jump) and plain[r, k]
+                           and _same_colour(L1, r, k, far, tol)):
                         k += step
                     e = 0
-                    while (0 <= k < width and row[k] > invalid and abs(row[k] - row[start]) <= jump
-                           and e < half and _same_colour(L1, r, k, far, tol)):
+                    while _on_surface(row, k, start, invalid, jump) and e < half and _same_colour(L1, r, k, far, tol):
                         k += step
                         e += 1
                     # an intensity edge on the nearer surface ends the walk
-                    if (k != start and 0 <= k < width and row[k] > invalid
-                            and abs(row[k] - row[start]) <= jump and not plain[r, k]):
+                    if k != start and _on_surface(row, k, start, invalid, jump) and not plain[r, k]:
                         x = start
                         while x != k:
                             drop[x] = True
