@@ -268,6 +268,7 @@ class SgmConfig:
     median: bool = True  #: smooth the disparities by a 5x5 median on their surface (false: as SGM leaves them)
     plain_fit: bool = True  #: on plain windows, each disparity from its surface's local plane (false: the median's)
     planes: bool = True  #: fill large plain regions whose matches lie on one plane (:mod:`.matching.planes`)
+    plane_snap: bool = True  #: move the matches without signal of large plain regions that are one plane onto it (:mod:`.matching.planes`)
 
 
 @dataclass

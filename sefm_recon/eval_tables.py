@@ -72,6 +72,7 @@ SGM_ABLATIONS: dict[str, list[str]] = {
     "- median over each surface": ["sgm.median=false"],
     "- plane fit on plain windows": ["sgm.plain_fit=false"],
     "- holes of plain planes filled": ["sgm.planes=false"],
+    "- matches without signal on plain planes moved onto them": ["sgm.plane_snap=false"],
 }
 
 #: Ablation rows of the sequential DP: each removes (or, marked +, adds) one stage beyond the paper.

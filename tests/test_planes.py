@@ -98,3 +98,69 @@ def test_a_hole_whose_partner_a_nearer_surface_covers_in_view_2_stays_empty():
     fill = fill_planes(gray, (W, H), tv, np.concatenate([uv1, n1]), np.concatenate([uv2, n2]),
                        np.concatenate([X, nX]))
     assert in_hole(fill.uv1).sum() == 0
+
+
+def _slanted(tv, pixels, wave):
+    """Matches on a slanted plane (parallax DISP + 0.04 per column from the centre) whose
+    estimates are off by ``wave`` (N,) columns, as SGM's steps leave a plain slanted surface,
+    and the true partners."""
+    uv1 = pixels[:, ::-1] + 0.5
+    true2 = uv1 - np.column_stack([DISP + 0.04 * (uv1[:, 0] - W / 2), np.zeros(len(uv1))])
+    uv2 = true2 - np.column_stack([wave, np.zeros(len(uv1))])
+    X, ok, _ = triangulate(tv.K1, tv.K2, tv.R, tv.t, uv1, uv2)
+    assert ok.all()
+    return uv1, uv2, X, true2
+
+
+def test_a_plain_slanted_planes_steps_move_onto_the_plane_where_the_window_has_no_signal():
+    tv, gray = _scene()
+    rng = np.random.default_rng(3)
+    gray[100:130, 150:190] = np.clip(128 + rng.normal(0, 3, (30, 40)), 0, 255)  # faint grain: signal
+    px = _plain_pixels()
+    x = px[:, 1] + 0.5
+    true_d = DISP + 0.04 * (x - W / 2)
+    # steps, and runs 1.2 columns off to either side (SGM's wave about the plane)
+    run = lambda a, b: (x >= a) & (x < b)
+    wave = np.round(true_d) - true_d + 1.2 * run(110, 150) - 1.2 * (run(70, 90) | run(170, 190))
+    uv1, uv2, X, true2 = _slanted(tv, px, wave)
+    labels, _ = plain_regions(gray)
+    assert len(np.unique(labels[24:156, 44:216])) == 1  # the grain is no edge: one region
+    fill = fill_planes(gray, (W, H), tv, uv1, uv2, X)
+    inside = lambda x0, x1, y0, y1: (uv1[:, 0] > x0) & (uv1[:, 0] < x1) & (uv1[:, 1] > y0) & (uv1[:, 1] < y1)
+    moved = np.zeros(len(uv1), bool)
+    moved[fill.moved] = True
+    assert not moved[inside(152, 188, 102, 128)].any()  # SGM's own estimate where the window has signal
+    assert moved[~inside(146, 194, 96, 134)].mean() > 0.95  # the rest, steps and runs alike
+    assert np.abs(fill.moved_uv2 - true2[fill.moved]).max() < 0.1  # onto the plane
+    Xm, _, _ = triangulate(tv.K1, tv.K2, tv.R, tv.t, uv1[fill.moved], fill.moved_uv2)
+    assert np.allclose(fill.moved_xyz, Xm, rtol=1e-6)  # each point on both its rays
+    Xt, _, _ = triangulate(tv.K1, tv.K2, tv.R, tv.t, uv1[fill.moved], true2[fill.moved])
+    assert np.allclose(fill.moved_xyz, Xt, rtol=0.01)
+    assert np.abs(wave[fill.moved]).max() > 1.5  # it did move matches more than 1 px off
+    # switched off: nothing moves, and the fill alone does not depend on it
+    off = fill_planes(gray, (W, H), tv, uv1, uv2, X, snap=False)
+    assert len(off.moved) == 0
+    only = fill_planes(gray, (W, H), tv, uv1, uv2, X, fill=False)
+    assert len(only.uv1) == 0 and np.array_equal(only.moved, fill.moved)
+
+
+def test_a_region_not_one_plane_all_through_keeps_its_matches():
+    # 12 % of the region lies 3 px off the plane (a fold, another surface): the plane still
+    # fills its holes, but moves none of its matches
+    tv, gray = _scene()
+    rng = np.random.default_rng(4)
+    px = _plain_pixels()
+    px = px[rng.random(len(px)) < 0.8]
+    x = px[:, 1] + 0.5
+    true_d = DISP + 0.04 * (x - W / 2)
+    wave = np.round(true_d) - true_d + np.where(x >= 195, 3.0, 0.0)
+    assert 0.08 < np.mean(x >= 195) < 0.15
+    uv1, uv2, X, _ = _slanted(tv, px, wave)
+    fill = fill_planes(gray, (W, H), tv, uv1, uv2, X)
+    assert len(fill.uv1) > 0 and len(fill.moved) == 0
+    # nearly all of it on the plane: the steps move
+    wave = np.round(true_d) - true_d + np.where(x >= 212, 3.0, 0.0)
+    assert np.mean(x >= 212) < 0.05
+    uv1, uv2, X, _ = _slanted(tv, px, wave)
+    fill = fill_planes(gray, (W, H), tv, uv1, uv2, X)
+    assert len(fill.moved) > 0.9 * len(uv1) and (uv1[fill.moved, 0] < 212).all()

@@ -13,7 +13,15 @@ epipolar line, unless a nearer surface's match already lands there in image 2
 
 A region whose matches are few, or split over several depths (a wrong patch of
 the matcher, a curved or folded surface), is left as it is: the fill only extends
-what the matcher found, it never overrides a match.
+what the matcher found.
+
+Where a region is one plane all through (nearly all its matches within
+:data:`SNAP_PX` of one plane of the scene), its matches on windows without signal
+(:data:`SNAP_LEVELS`) move onto the plane as well: there SGM's cost is flat and
+its winner is set by the smoothness penalties alone, so that a slanted plain
+surface comes out as a wave of fronto-parallel steps around the plane (Plastic's
+box face: 1-1.7 px off over runs of 20-40 px, more than the local plane fit of
+:func:`.sgm.fit_plain_surfaces` spans).
 """
 
 from __future__ import annotations
@@ -23,6 +31,8 @@ from typing import NamedTuple
 import cv2
 import numpy as np
 from numba import njit
+
+from ..arrays import quiet_windows
 
 __all__ = ["PlaneFill", "fill_planes", "plain_regions"]
 
@@ -63,15 +73,42 @@ OCCLUSION_PX = 1
 #: on the same pixel of image 2 differ by far less; a surface in front, by more (1 px of
 #: parallax is 1.4-6 % of the depth on the real pairs).
 HIDDEN_DEPTH_SHARE = 0.01
+#: A region is one plane where at least :data:`SNAP_SHARE` of its matches lie within this
+#: many px of its plane (:func:`_snap_plane`): SGM's wave around a plain slanted plane reaches 1.7 px
+#: (Plastic's box face); a match farther off is another surface's and keeps its own.
+SNAP_PX = 2.0
+#: ...this share: nearly all. A folded or curved surface that a plane fits in part falls
+#: short (Midd1's and Midd2's lampshade: 79-80 %, Bowling1's cloth 74 %; Plastic's box
+#: face: 99.7 %). Without this test (every region the fill trusts) the real pairs' means at
+#: 1 px came 0.9492 / 0.8823 -> 0.9458 / 0.8793 (Lampshade2 and Bowling1 conv -0.034 to
+#: -0.049 of precision).
+SNAP_SHARE = 0.95
+#: Only matches whose window (:data:`SNAP_WINDOW` square) in image 1 has a grey-value
+#: standard deviation below this many levels move: sensor noise and quantisation alone, no
+#: signal SGM's cost could follow (Plastic's box face, the Middlebury walls: 0.4-0.5).
+#: Where a plain surface still has faint grain (the flower pots' clay, a book's page:
+#: 1.3-1.6), SGM follows its curvature, which a plane would flatten (without this test
+#: Flowerpots lost 0.004-0.010 of precision at 1 px).
+SNAP_LEVELS = 1.0
+#: ...the window of SGM's matching cost (:data:`.sgm.BLOCK`).
+SNAP_WINDOW = 5
+#: The plane is fitted again from the matches near the last fit this many times (the first
+#: fit from RANSAC's inliers within 1 px): in the test's wave (steps and runs 1.2 px either
+#: side) the plane came 0.19 px off at the region's ends after one, 0.03 (least squares' own)
+#: after two and three.
+SNAP_FITS = 2
 
 
 class PlaneFill(NamedTuple):
-    """What :func:`fill_planes` added."""
+    """What :func:`fill_planes` added, and the matches it moved onto their plane."""
 
     uv1: np.ndarray  #: (N, 2) pixels of image 1 that had no match (COLMAP positions)
     uv2: np.ndarray  #: (N, 2) their partners on the region's plane, on their epipolar lines
     xyz: np.ndarray  #: (N, 3) their points, camera 1's frame
     regions: int  #: regions filled
+    moved: np.ndarray  #: (M,) indices of the given matches moved onto their region's plane
+    moved_uv2: np.ndarray  #: (M, 2) their new partners in image 2, on their epipolar lines
+    moved_xyz: np.ndarray  #: (M, 3) their new points, camera 1's frame
 
 
 def plain_regions(gray: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -143,9 +180,55 @@ def _on_lines(F: np.ndarray, uv1: np.ndarray, uv2: np.ndarray) -> np.ndarray:
     return uv2 - s[:, None] * l[:, :2]
 
 
+def _inverse_depth_plane(uv1: np.ndarray, z: np.ndarray) -> np.ndarray | None:
+    """``(a, b, c)``: the plane through the points seen at ``uv1`` (N, 2) at depths ``z`` (N,),
+    as the inverse depth 1 / z = a u + b v + c (exact for a plane; least squares in inverse
+    depth, to which parallax is proportional); ``None`` where they lie on one line."""
+    A = np.column_stack([uv1, np.ones(len(uv1))])
+    abc, _, rank, _ = np.linalg.lstsq(A, 1.0 / z, rcond=None)
+    return abc if rank == 3 else None
+
+
+def _on_plane(tv, uv1: np.ndarray, abc: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """For pixels ``uv1`` (N, 2) and their plane ``abc`` (3,), or each one's (N, 3) (:func:`_inverse_depth_plane`):
+    ``(uv2, X, ok)``, the plane's point on each pixel's ray (camera 1's frame), its projection in
+    image 2 and whether it lies in front of both cameras."""
+    p = np.column_stack([uv1, np.ones(len(uv1))])
+    w = (p * abc).sum(axis=1)
+    ray = p @ np.linalg.inv(tv.K1).T
+    ok = w > 0
+    X = ray / np.where(ok, w, 1.0)[:, None] / ray[:, 2:3]
+    x2 = (X @ tv.R.T + tv.t) @ tv.K2.T
+    ok &= x2[:, 2] > 0
+    uv2 = x2[:, :2] / np.where(ok, x2[:, 2], 1.0)[:, None]
+    return uv2, X, ok
+
+
+def _snap_plane(tv, uv1: np.ndarray, uv2: np.ndarray, z: np.ndarray,
+                inliers: np.ndarray) -> tuple[np.ndarray | None, np.ndarray]:
+    """A region's plane of the scene (:func:`_inverse_depth_plane`: 3 parameters, it cannot
+    bend to follow part of SGM's wave as a homography's 8 can) and its matches within
+    :data:`SNAP_PX` of it, where they are at least :data:`SNAP_SHARE` of the region's matches
+    ``uv1``, ``uv2`` (N, 2) at depths ``z`` (N,); else ``(None, ...)``. Fitted from
+    ``inliers`` (N,) bool (RANSAC's), then :data:`SNAP_FITS` times from the matches near the
+    last plane: the wave's runs beyond 1 px, left out of the first, are in the last."""
+    near = inliers
+    for _ in range(SNAP_FITS):
+        plane = _inverse_depth_plane(uv1[near], z[near])
+        if plane is None:
+            return None, near
+        q2, _, ok = _on_plane(tv, uv1, plane)
+        near = ok & (np.linalg.norm(q2 - uv2, axis=1) <= SNAP_PX)
+        if np.mean(near) < SNAP_SHARE:
+            return None, near
+    return _inverse_depth_plane(uv1[near], z[near]), near
+
+
 def fill_planes(gray1: np.ndarray, size2: tuple[int, int], tv, uv1: np.ndarray, uv2: np.ndarray, X: np.ndarray,
-                *, seed: int = 0) -> PlaneFill:
-    """Partners for the unmatched pixels of image 1's large plain regions whose matches lie on one plane.
+                *, fill: bool = True, snap: bool = True, seed: int = 0) -> PlaneFill:
+    """Partners for the unmatched pixels of image 1's large plain regions whose matches lie on
+    one plane (``fill``), and for the matches without signal of the regions that are one plane
+    all through (``snap``, :data:`SNAP_PX`).
 
     Args:
         gray1: (H, W) uint8 image 1 (working size).
@@ -153,7 +236,8 @@ def fill_planes(gray1: np.ndarray, size2: tuple[int, int], tv, uv1: np.ndarray, 
         tv: the pair's geometry (:class:`.geometry.two_view.TwoView`: ``K1``, ``K2``, ``R``, ``t``, ``F``).
         uv1, uv2: (N, 2) the matches, COLMAP positions, at most one per pixel of image 1.
         X: (N, 3) their points (camera 1's frame), for what they hide in view 2.
-    Returns the added matches (:class:`PlaneFill`); pixels already matched are never touched.
+    Returns the added matches and the moved ones (:class:`PlaneFill`); the arguments are not
+    changed.
     """
     from ..geometry.triangulate import triangulate
 
@@ -161,12 +245,14 @@ def fill_planes(gray1: np.ndarray, size2: tuple[int, int], tv, uv1: np.ndarray, 
     labels, stats = plain_regions(gray1)
     areas = stats[:, cv2.CC_STAT_AREA]
     big = np.flatnonzero(areas >= MIN_REGION_SHARE * h * w)
-    empty = PlaneFill(np.zeros((0, 2)), np.zeros((0, 2)), np.zeros((0, 3)), 0)
-    if len(big) == 0 or len(uv1) == 0:
+    none2, none3 = np.zeros((0, 2)), np.zeros((0, 3))
+    empty = PlaneFill(none2, none2, none3, 0, np.zeros(0, np.int64), none2, none3)
+    if len(big) == 0 or len(uv1) == 0 or not (fill or snap):
         return empty
     lab, matched = _region_of_matches(np.ascontiguousarray(uv1), labels)
+    quiet = quiet_windows(gray1, SNAP_WINDOW, SNAP_LEVELS) if snap else None
     rng = np.random.default_rng(seed)
-    add1, add2 = [], []
+    add1, add2, moved, moved2, planes = [], [], [], [], []
     m = HOLE_WINDOW // 2
     for k in big:
         idx = np.flatnonzero(lab == k)
@@ -180,6 +266,16 @@ def fill_planes(gray1: np.ndarray, size2: tuple[int, int], tv, uv1: np.ndarray, 
         pred = cv2.perspectiveTransform(uv1[idx].reshape(-1, 1, 2), H).reshape(-1, 2)
         on_plane = np.linalg.norm(pred - uv2[idx], axis=1) <= 1.0
         if np.mean(on_plane) < MIN_PLANE_SUPPORT:
+            continue
+        if snap:
+            p1 = uv1[idx]
+            plane, near = _snap_plane(tv, p1, uv2[idx], X[idx, 2], on_plane)
+            if plane is not None:
+                near &= quiet[p1[:, 1].astype(np.int64), p1[:, 0].astype(np.int64)]
+                moved.append(idx[near])
+                moved2.append(p1[near])
+                planes.append(np.broadcast_to(plane, (int(near.sum()), 3)))
+        if not fill:
             continue
         # holes of the plane's matches, not a surface beyond them (MIN_HOLE_SUPPORT), over the
         # region's bounding box and the window's reach around it
@@ -199,13 +295,21 @@ def fill_planes(gray1: np.ndarray, size2: tuple[int, int], tv, uv1: np.ndarray, 
         inside = (p2[:, 0] >= 0) & (p2[:, 0] < size2[0]) & (p2[:, 1] >= 0) & (p2[:, 1] < size2[1])
         add1.append(p1[inside])
         add2.append(p2[inside])
+    out = empty
+    if moved:
+        m_idx, m1, abc = np.concatenate(moved), np.concatenate(moved2), np.concatenate(planes)
+        m2, mX, ok = _on_plane(tv, m1, abc)
+        out = out._replace(moved=m_idx[ok], moved_uv2=m2[ok], moved_xyz=mX[ok])
     if not add1 or sum(map(len, add1)) < MIN_FILL_SHARE * len(uv1):
-        return empty
+        return out
     a1, a2 = np.concatenate(add1), np.concatenate(add2)
+    if len(out.moved):  # the moved matches hide from where they now land
+        uv2, X = uv2.copy(), X.copy()
+        uv2[out.moved], X[out.moved] = out.moved_uv2, out.moved_xyz
     # hidden in view 2: a nearer surface's match lands where the fill would
     zbuf = _nearest_depth(np.ascontiguousarray(uv2), np.ascontiguousarray(X), np.ascontiguousarray(tv.R, np.float64),
                           np.asarray(tv.t, np.float64), *size2)
     Xa, va, _ = triangulate(tv.K1, tv.K2, tv.R, tv.t, a1, a2)
     za = Xa @ tv.R[2] + tv.t[2]
     keep = va & ~_hidden(np.ascontiguousarray(a2), np.ascontiguousarray(za), zbuf, HIDDEN_DEPTH_SHARE)
-    return PlaneFill(a1[keep], a2[keep], Xa[keep], len(add1))
+    return out._replace(uv1=a1[keep], uv2=a2[keep], xyz=Xa[keep], regions=len(add1))

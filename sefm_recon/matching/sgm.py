@@ -16,7 +16,7 @@ The disparities are then read back at every pixel of image 1 (:func:`pixel_match
 the pixel's own ray gives its row and column, the disparity there its ray in image 2,
 so each pixel holds one match exactly on its epipolar line whatever the sampling of the
 line images, and its scene point where the two rays meet; the holes of plain planes
-are filled (:mod:`.planes`).
+are filled and their matches without signal moved onto them (:mod:`.planes`).
 """
 
 from __future__ import annotations
@@ -32,7 +32,7 @@ import cv2
 import numpy as np
 from numba import njit, prange
 
-from ..arrays import append_rows
+from ..arrays import append_rows, quiet_windows
 from ..config import Config
 from ..errors import InputError
 from ..geometry.epipolar import ray_angles
@@ -745,11 +745,7 @@ def surface_median(disp: np.ndarray, invalid: float, passes: int = MEDIAN_PASSES
 def plain_windows(L1: np.ndarray) -> np.ndarray:
     """(rows, width) bool: the cells of line image 1 whose :data:`BLOCK` square window has a
     grey-value standard deviation below :data:`PLAIN_LEVELS` (:func:`fit_plain_surfaces`)."""
-    g = to_gray(L1).astype(np.float32)
-    mean = cv2.blur(g, (BLOCK, BLOCK))
-    var = cv2.blur(cv2.multiply(g, g), (BLOCK, BLOCK))  # (OpenCV's sqrBoxFilter took twice as long)
-    var -= cv2.multiply(mean, mean)
-    return var < PLAIN_LEVELS**2
+    return quiet_windows(to_gray(L1), BLOCK, PLAIN_LEVELS)
 
 
 def fit_plain_surfaces(disp: np.ndarray, plain: np.ndarray, invalid: float) -> int:
@@ -1349,10 +1345,12 @@ def match_pair_sgm(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config,
     uv1, uv2, X, rows = pixel_matches(disp, min_d, grid, tv, size1, size2, opt.interpolate)
     del disp
     n_sgm = len(uv1)
-    n_planes = 0
-    if opt.planes:
-        pf = fill_planes(to_gray(img1), size2, tv, uv1, uv2, X)
-        n_planes = len(pf.uv1)
+    n_planes = n_moved = 0
+    if opt.planes or opt.plane_snap:
+        pf = fill_planes(to_gray(img1), size2, tv, uv1, uv2, X, fill=opt.planes, snap=opt.plane_snap)
+        n_planes, n_moved = len(pf.uv1), len(pf.moved)
+        uv2[pf.moved] = pf.moved_uv2
+        X[pf.moved] = pf.moved_xyz
     if n_planes:
         # no line of the line images (-1), and a lower confidence than a match SGM found
         uv1, uv2, X = append_rows(uv1, pf.uv1), append_rows(uv2, pf.uv2), append_rows(X, pf.xyz)
@@ -1373,7 +1371,7 @@ def match_pair_sgm(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config,
                 "carried into an unmatched plain region, %d carried across a depth jump on a plain region, %d far "
                 "where image 2 sees no nearer parallax, %d near without a coarse surface there and %d fattened "
                 "at depth edges dropped), %d on plain windows fitted to their surface's plane, %d filled on plain "
-                "planes, %d valid",
+                "planes and %d moved onto them, %d valid",
                 "4 full paths" if full else "3 directions", counts["line_pairs"], n_dense, n_ends, n_flat, n_out,
-                n_col, n_occ, n_car, n_far, n_near, n_fat, n_fit, n_planes, len(uv1))
+                n_col, n_occ, n_car, n_far, n_near, n_fat, n_fit, n_planes, n_moved, len(uv1))
     return DenseMatches(uv1, uv2, score, rows, X, counts, timings)
