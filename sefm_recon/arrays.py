@@ -14,8 +14,9 @@ def finite_rows(*arrays: np.ndarray) -> np.ndarray:
     on millions of short rows.
     """
     total = np.zeros(len(arrays[0]))
-    for a in arrays:
-        total += np.asarray(a, np.float64) @ np.ones(a.shape[1])
+    with np.errstate(invalid="ignore", over="ignore"):  # inf - inf and overflow: non-finite, as meant
+        for a in arrays:
+            total += np.asarray(a, np.float64) @ np.ones(a.shape[1])
     return np.isfinite(total)
 
 
