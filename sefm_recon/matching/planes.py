@@ -252,7 +252,7 @@ def fill_planes(gray1: np.ndarray, size2: tuple[int, int], tv, uv1: np.ndarray, 
     lab, matched = _region_of_matches(np.ascontiguousarray(uv1), labels)
     quiet = quiet_windows(gray1, SNAP_WINDOW, SNAP_LEVELS) if snap else None
     rng = np.random.default_rng(seed)
-    add1, add2, moved, moved2, planes = [], [], [], [], []
+    add1, add2, moved, planes = [], [], [], []
     m = HOLE_WINDOW // 2
     for k in big:
         idx = np.flatnonzero(lab == k)
@@ -268,12 +268,11 @@ def fill_planes(gray1: np.ndarray, size2: tuple[int, int], tv, uv1: np.ndarray, 
         if np.mean(on_plane) < MIN_PLANE_SUPPORT:
             continue
         if snap:
-            p1 = uv1[idx]
-            plane, near = _snap_plane(tv, p1, uv2[idx], X[idx, 2], on_plane)
+            own1 = uv1[idx]  # the region's matches in image 1
+            plane, near = _snap_plane(tv, own1, uv2[idx], X[idx, 2], on_plane)
             if plane is not None:
-                near &= quiet[p1[:, 1].astype(np.int64), p1[:, 0].astype(np.int64)]
+                near &= quiet[own1[:, 1].astype(np.int64), own1[:, 0].astype(np.int64)]
                 moved.append(idx[near])
-                moved2.append(p1[near])
                 planes.append(np.broadcast_to(plane, (int(near.sum()), 3)))
         if not fill:
             continue
@@ -297,8 +296,8 @@ def fill_planes(gray1: np.ndarray, size2: tuple[int, int], tv, uv1: np.ndarray, 
         add2.append(p2[inside])
     out = empty
     if moved:
-        m_idx, m1, abc = np.concatenate(moved), np.concatenate(moved2), np.concatenate(planes)
-        m2, mX, ok = _on_plane(tv, m1, abc)
+        m_idx, abc = np.concatenate(moved), np.concatenate(planes)
+        m2, mX, ok = _on_plane(tv, uv1[m_idx], abc)
         out = out._replace(moved=m_idx[ok], moved_uv2=m2[ok], moved_xyz=mX[ok])
     if not add1 or sum(map(len, add1)) < MIN_FILL_SHARE * len(uv1):
         return out
