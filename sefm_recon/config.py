@@ -261,6 +261,7 @@ class SgmConfig:
     carried_check: bool = True  #: drop the plain cells of a farther surface's colour a nearer surface carries across a depth jump, up to its intensity edge
     near_range: bool = True  #: extend the SIFT range towards the camera where a coarse pass finds a surface beyond it
     far_check: bool = True  #: drop far end estimates of cells image 2 sees at no nearer parallax (unseen there)
+    far_surface_check: bool = True  #: drop far end estimates on surfaces image 2 sees nowhere at every parallax (ties beyond its edge)
     near_check: bool = True  #: drop estimates at the search's near end where the coarse pass found no surface that near
     coarse_range: bool = True  #: without 8 SIFT inliers, search what a coarse pass finds (false: every depth)
     bicubic: bool = True  #: bicubic line images (false: bilinear)

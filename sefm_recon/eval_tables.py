@@ -60,6 +60,7 @@ SGM_ABLATIONS: dict[str, list[str]] = {
     "- range extended towards the camera by a coarse pass": ["sgm.near_range=false"],
     "- estimates at the near end without a coarse surface there dropped": ["sgm.near_check=false"],
     "- estimates at the far end of cells image 2 sees at no nearer parallax dropped": ["sgm.far_check=false"],
+    "- far end estimates on surfaces image 2 sees nowhere at every parallax dropped": ["sgm.far_surface_check=false"],
     "- estimates at the ends of the search dropped": ["sgm.end_check=false"],
     "- estimates whose window reaches into an area of one value dropped": ["sgm.flat_check=false"],
     "- estimates whose window in image 2 reaches beyond it dropped": ["sgm.outside_check=false"],

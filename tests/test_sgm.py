@@ -788,6 +788,37 @@ def test_far_end_estimates_of_cells_image_2_sees_only_there_are_dropped():
     assert n == rows * unseen.sum()
 
 
+def test_far_end_surfaces_that_image_2_sees_nowhere_at_every_parallax_are_dropped():
+    from sefm_recon.matching.sgm import BLOCK, drop_unanchored_far
+
+    shift, end, near = 10, 20.0, 60.0  # far end columns below 20; the range proper up to 60
+    rows, width = 40, 120
+    span2 = np.tile(np.array([15, 400]), (rows, 1))  # image 2's cells from column 15
+    # a cell at x sees image 2 up to parallax x + shift - (15 + BLOCK // 2) + 0.5: at every
+    # parallax up to `near` from x = 67 on
+    x = np.arange(width)
+    assert ((x + shift - (15 + BLOCK // 2) + 0.5 >= near) == (x >= 67)).all()
+    disp = np.full((rows, width), -1.0, np.float32)
+    disp[:, :30] = 15.0  # a far end patch wholly where image 2 does not see every parallax,
+    disp[:, 30:40] = 30.0  # next to a surface 15 columns nearer that reaches x >= 67
+    disp[:, 40:70] = 30.0
+    disp[:, 80:110] = 17.0  # a far end patch where image 2 sees every parallax
+    before = disp.copy()
+    n = drop_unanchored_far(disp, span2, shift, end, near, -1.0)
+    assert (disp[:, :30] == -1.0).all() and n == rows * 30
+    assert (disp[:, 30:] == before[:, 30:]).all()
+    # the same patch going on as a surface whose parallax rises a column every 4 cells,
+    # out of the far end columns, to cells image 2 sees at every parallax: it stays whole
+    disp = before.copy()
+    disp[:, 30:70] = 15.0 + (np.arange(40) // 4)[None, :]
+    disp[3:6, 10:20] = 15.5  # (steps within a column join, across rows too)
+    kept = disp.copy()
+    assert drop_unanchored_far(disp, span2, shift, end, near, -1.0) == 0 and (disp == kept).all()
+    # ... but not across a step of more than a column
+    disp[:, 50:70] += 1.5
+    assert drop_unanchored_far(disp, span2, shift, end, near, -1.0) == rows * 50
+
+
 def test_the_search_follows_a_floor_nearer_than_its_sift_points():
     # A rectified pair of one slanted surface (a floor towards the camera): disparity
     # from 10 px at the top row to 100 px at the bottom. SIFT points on the top third
