@@ -800,8 +800,7 @@ def test_far_end_surfaces_that_image_2_sees_nowhere_at_every_parallax_are_droppe
     assert ((x + shift - (15 + BLOCK // 2) + 0.5 >= near) == (x >= 67)).all()
     disp = np.full((rows, width), -1.0, np.float32)
     disp[:, :30] = 15.0  # a far end patch wholly where image 2 does not see every parallax,
-    disp[:, 30:40] = 30.0  # next to a surface 15 columns nearer that reaches x >= 67
-    disp[:, 40:70] = 30.0
+    disp[:, 30:70] = 30.0  # next to a surface 15 columns nearer that reaches x >= 67
     disp[:, 80:110] = 17.0  # a far end patch where image 2 sees every parallax
     before = disp.copy()
     n = drop_unanchored_far(disp, span2, shift, end, near, -1.0)

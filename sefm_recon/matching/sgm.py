@@ -1444,9 +1444,9 @@ def match_pair_sgm(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config,
     logger.info("SGM (%s): %d line pairs, %d dense (%d more at the ends of the search, %d on windows without "
                 "signal, %d on windows beyond image 2, %d sharing a pixel of image 2 with another surface, %d "
                 "carried into an unmatched plain region, %d carried across a depth jump on a plain region, %d far "
-                "where image 2 sees no nearer parallax or on a far surface it sees nowhere at every one, %d near without a coarse surface there and %d fattened "
-                "at depth edges dropped), %d on plain windows fitted to their surface's plane, %d filled on plain "
-                "planes and %d moved onto them, %d valid",
+                "where image 2 sees no nearer parallax or on a surface it sees nowhere at every one, %d near "
+                "without a coarse surface there and %d fattened at depth edges dropped), %d on plain windows fitted "
+                "to their surface's plane, %d filled on plain planes and %d moved onto them, %d valid",
                 "4 full paths" if full else "3 directions", counts["line_pairs"], n_dense, n_ends, n_flat, n_out,
                 n_col, n_occ, n_car, n_far, n_near, n_fat, n_fit, n_planes, n_moved, len(uv1))
     return DenseMatches(uv1, uv2, score, rows, X, counts, timings)
