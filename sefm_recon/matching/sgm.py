@@ -530,7 +530,19 @@ def _root(parent, i):
 @njit(cache=True)
 def _drop_unanchored(disp, first, end, invalid, tol):
     rows, width = disp.shape
-    parent = np.arange(rows * width).astype(np.int32)  # each cell's surface, by union-find
+    # without a far end estimate that image 2 does not see at every parallax there is no
+    # surface to find, nor a forest of the whole line image to build
+    todo = False
+    for r in range(rows):
+        for x in range(min(max(first[r], 0), width)):
+            if invalid < disp[r, x] < end:
+                todo = True
+                break
+        if todo:
+            break
+    if not todo:
+        return 0
+    parent = np.arange(rows * width, dtype=np.int32)  # each cell's surface, by union-find
     for r in range(rows):
         for x in range(width):
             d = disp[r, x]
