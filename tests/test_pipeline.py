@@ -197,7 +197,7 @@ def test_the_pose_is_refined_where_the_tracks_and_the_sift_inliers_favour_it(sma
     """A SIFT pose 0.04 deg off leaves the tracks a median 0.2-0.3 px from its lines, a level a
     right pose of a warped image also shows; the refined pose brings them to the tracks' own
     noise (under 0.1 px) and its lines nearer the SIFT inliers too, so it is used. The right
-    pose's refinement moves the lines too little to match again, and the pose stays."""
+    pose's refinement brings the tracks no nearer its lines than their noise, and the pose stays."""
     v1, v2 = small_scene.views
     _off_pose(monkeypatch, [rotation_deg, 0.0, 0.0])
     cfg = load_config(None, ["output.mesh=false"], internal=True)
@@ -209,6 +209,33 @@ def test_the_pose_is_refined_where_the_tracks_and_the_sift_inliers_favour_it(sma
         assert 0.15 < check["sift_pose_epipolar_px"] < 0.3 and check["refined_pose_epipolar_px"] < 0.1, check
         assert res.notes["pose"] == "estimated, refined with the dense matches"
         assert _pose_error_deg(res, v1, v2) < 0.03
+
+
+@pytest.mark.parametrize("after, used", [(0.099, False), (0.09, True)])
+def test_a_refined_pose_is_used_where_the_tracks_favour_it_beyond_their_noise(after, used):
+    """1000 tracks lie a median 0.1 px from the SIFT pose's lines: that median's standard
+    error is 1.17 * 0.1 / sqrt(1000) = 0.0037 px. A refined pose 0.001 px nearer them (0.27
+    standard errors) fits their noise and is not used; one 0.01 px nearer (2.7) is, though it
+    moves the lines by hundredths of a pixel and the SIFT inliers lie as near its lines."""
+    from types import SimpleNamespace
+
+    import cv2
+
+    from sefm_recon.geometry.two_view import TwoView
+    from sefm_recon.pipeline import _refined_pose_holds
+
+    rng = np.random.default_rng(0)
+    K = np.array([[400.0, 0.0, 160.0], [0.0, 400.0, 120.0], [0.0, 0.0, 1.0]])
+    xy = rng.uniform([0, 0], [320, 240], (200, 2))
+    tv = TwoView(K, K, np.eye(3), np.array([1.0, 0.0, 0.0]), kp1=xy, kp2=xy + [-20.0, 0.0] + rng.normal(0, 0.1, (200, 2)))
+    new = TwoView(K, K, cv2.Rodrigues(np.radians([0.0, 0.0, 0.005]))[0], tv.t)  # its lines turned 0.005 deg
+    dense = rng.uniform([0, 0], [320, 240], (5000, 2))
+    dm = SimpleNamespace(uv1=dense, uv2=dense - [20.0, 0.0])  # on the SIFT pose's lines
+    notes = {"pose_check": {"tracks": 1000}}
+    assert _refined_pose_holds(tv, new, dm, 0.1, after, notes) is used
+    check = notes["pose_check"]
+    assert check["tracks_gain_se"] == pytest.approx((0.1 - after) / 0.0037, rel=0.01)
+    assert check["refined_line_shift_px"] < 0.05, check
 
 
 def test_tracks_biased_towards_a_wrong_pose_are_overruled_by_the_sift_inliers(small_scene, monkeypatch):
