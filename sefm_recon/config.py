@@ -270,6 +270,7 @@ class SgmConfig:
     plain_fit: bool = True  #: on plain windows, each disparity from its surface's local plane (false: the median's)
     planes: bool = True  #: fill large plain regions whose matches lie on one plane (:mod:`.matching.planes`)
     plane_snap: bool = True  #: move the matches without signal of large plain regions that are one plane onto it (:mod:`.matching.planes`)
+    scattered_check: bool = True  #: drop the matches of large plain regions mostly unmatched whose matches lie on no one plane (:mod:`.matching.planes`)
 
 
 @dataclass

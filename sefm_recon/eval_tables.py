@@ -74,6 +74,7 @@ SGM_ABLATIONS: dict[str, list[str]] = {
     "- plane fit on plain windows": ["sgm.plain_fit=false"],
     "- holes of plain planes filled": ["sgm.planes=false"],
     "- matches without signal on plain planes moved onto them": ["sgm.plane_snap=false"],
+    "- matches of plain regions mostly unmatched and on no one plane dropped": ["sgm.scattered_check=false"],
 }
 
 #: Ablation rows of the sequential DP: each removes (or, marked +, adds) one stage beyond the paper.

@@ -85,6 +85,29 @@ def test_matches_split_over_two_depths_or_too_few_fill_nothing():
     assert len(fill_planes(gray, (W, H), tv, *few).uv1) == 0
 
 
+def test_a_mostly_unmatched_region_whose_matches_lie_on_no_one_plane_drops_them():
+    """A third of the plain square matched in patches (8 px squares) at three depths, each
+    drawn at random (a third of them on any one plane): the matcher found no surface there,
+    and every one of its matches is to drop. The same pixels on one plane (a plain wall found
+    in part) and 70 % of the square over two depths (mostly matched) keep theirs, as the
+    patches do with ``drop=False``."""
+    tv, gray = _scene()
+    rng = np.random.default_rng(3)
+    px = _plain_pixels()
+    some = px[rng.random(len(px)) < 0.3]
+    depth = rng.integers(0, 3, (H // 8 + 1, W // 8 + 1))[some[:, 0] // 8, some[:, 1] // 8]
+    patches = [np.concatenate(a) for a in zip(*(_matches(tv, some[depth == b], disp=DISP + 4 * b) for b in range(3)))]
+    out = fill_planes(gray, (W, H), tv, *patches)
+    assert len(out.dropped) == len(some) and len(out.uv1) == 0
+    np.testing.assert_array_equal(np.sort(out.dropped), np.arange(len(some)))
+    assert len(fill_planes(gray, (W, H), tv, *_matches(tv, some)).dropped) == 0
+    assert len(fill_planes(gray, (W, H), tv, *patches, drop=False).dropped) == 0
+    most = px[rng.random(len(px)) < 0.7]
+    half = rng.random(len(most)) < 0.5
+    split = [np.concatenate([x, y]) for x, y in zip(_matches(tv, most[half]), _matches(tv, most[~half], disp=DISP + 5))]
+    assert len(fill_planes(gray, (W, H), tv, *split).dropped) == 0
+
+
 def test_a_hole_whose_partner_a_nearer_surface_covers_in_view_2_stays_empty():
     tv, gray = _scene()
     px = _plain_pixels()

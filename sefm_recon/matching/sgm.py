@@ -1432,12 +1432,18 @@ def match_pair_sgm(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config,
     uv1, uv2, X, rows = pixel_matches(disp, min_d, grid, tv, size1, size2, opt.interpolate)
     del disp
     n_sgm = len(uv1)
-    n_planes = n_moved = 0
-    if opt.planes or opt.plane_snap:
-        pf = fill_planes(to_gray(img1), size2, tv, uv1, uv2, X, fill=opt.planes, snap=opt.plane_snap)
-        n_planes, n_moved = len(pf.uv1), len(pf.moved)
+    n_planes = n_moved = n_scattered = 0
+    if opt.planes or opt.plane_snap or opt.scattered_check:
+        pf = fill_planes(to_gray(img1), size2, tv, uv1, uv2, X, fill=opt.planes, snap=opt.plane_snap,
+                         drop=opt.scattered_check)
+        n_planes, n_moved, n_scattered = len(pf.uv1), len(pf.moved), len(pf.dropped)
         uv2[pf.moved] = pf.moved_uv2
         X[pf.moved] = pf.moved_xyz
+        if n_scattered:  # (none of them moved: their regions are not one plane)
+            keep = np.ones(n_sgm, bool)
+            keep[pf.dropped] = False
+            uv1, uv2, X, rows = uv1[keep], uv2[keep], X[keep], rows[keep]
+            n_sgm = len(uv1)
     if n_planes:
         # no line of the line images (-1), and a lower confidence than a match SGM found
         uv1, uv2, X = append_rows(uv1, pf.uv1), append_rows(uv2, pf.uv2), append_rows(X, pf.xyz)
@@ -1458,7 +1464,8 @@ def match_pair_sgm(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config,
                 "carried into an unmatched plain region, %d carried across a depth jump on a plain region, %d far "
                 "where image 2 sees no nearer parallax or on a surface it sees nowhere at every one, %d near "
                 "without a coarse surface there and %d fattened at depth edges dropped), %d on plain windows fitted "
-                "to their surface's plane, %d filled on plain planes and %d moved onto them, %d valid",
+                "to their surface's plane, %d filled on plain planes and %d moved onto them, %d on plain regions "
+                "mostly unmatched and on no one plane dropped, %d valid",
                 "4 full paths" if full else "3 directions", counts["line_pairs"], n_dense, n_ends, n_flat, n_out,
-                n_col, n_occ, n_car, n_far, n_near, n_fat, n_fit, n_planes, n_moved, len(uv1))
+                n_col, n_occ, n_car, n_far, n_near, n_fat, n_fit, n_planes, n_moved, n_scattered, len(uv1))
     return DenseMatches(uv1, uv2, score, rows, X, counts, timings)
