@@ -117,9 +117,10 @@ def print_table(rows: list[dict]) -> None:
     print("|---|---|---|---|---|---|---|---|---|")
     for r in rows:
         if "refused" in r:
-            why = re.search(r"a median ([0-9.]+) px", r["refused"])
+            why = re.search(r"a median ([0-9.]+) px from its epipolar lines and a quarter of them over ([0-9.]+)",
+                            r["refused"])
             kept = re.search(r"explain a median ([0-9]+) % of its inliers", r["refused"])
-            short = (f"tracks {why.group(1)} px off the lines" if why else
+            short = (f"tracks {why.group(1)} px off the lines, a quarter over {why.group(2)}" if why else
                      f"pose not determined: {kept.group(1)} % kept under resampling" if kept else
                      r["refused"].split(":")[0])
             print(f"| {r['pair']} | refused ({short}) | | | | | | | |")

@@ -443,8 +443,10 @@ def _check_and_refine_pose(v1: WorkingView, v2: WorkingView, tv, dm: DenseMatche
             # the scene's smoothness, chosen with the first pose, holds for the refined one
             cfg = dataclasses.replace(cfg, sgm=dataclasses.replace(cfg.sgm, jump_penalty=dm.counts["jump_penalty"]))
         dm = _match(v1, v2, tv, cfg, progress)
-    # the pose kept's distance from the tracks (None: too few tracks to judge it)
+    # the pose kept's distance from the tracks, median and 75th percentile (None: too few tracks to judge it)
     notes["pose_check"]["final_pose_epipolar_px"] = None if np.isnan(final) else round(final, 3)
+    quarter = pose_evidence(tv, tracks, 75.0)
+    notes["pose_check"]["final_pose_epipolar_p75_px"] = None if np.isnan(quarter) else round(quarter, 3)
     return tv, dm, notes
 
 
@@ -453,7 +455,13 @@ def _check_and_refine_pose(v1: WorkingView, v2: WorkingView, tv, dm: DenseMatche
 #: half a pixel off put a large share of them past it (the real pairs whose images were
 #: turned, so their principal points are far off the centre a guess assumes, lost
 #: 0.2-0.5 of their precision at 1 px beyond this), while a right camera leaves the
-#: tracks' own noise (0.1-0.3 px on fountain-P11 with the focal length estimated).
+#: tracks' own noise (0.1-0.3 px on fountain-P11 with the focal length estimated). It is
+#: refused too where a quarter of them lie more than twice this from its lines: tracks
+#: that are noise about the lines (half-normal, whose 75th percentile is 1.7 times its
+#: median) with a median within the bar leave three quarters within twice it, while a
+#: wrong camera that fits one part of the image leaves a quarter far off (Baby2 conv with
+#: the guessed camera: a median 0.46 px, a quarter over 2.1 px, its dense matches a median
+#: 1.2 px from the true epipolar lines; the pairs kept, 0.43-1.18 px).
 MAX_UNKNOWN_CAMERA_TRACK_PX = 0.5
 
 
@@ -462,14 +470,15 @@ def _check_unknown_camera(check: dict, focal: dict) -> None:
     px = check.get("final_pose_epipolar_px")
     if px is None:
         return
+    quarter = check.get("final_pose_epipolar_p75_px") or px  # (both come from the same tracks)
     focal["track_epipolar_px"] = px
-    if px > MAX_UNKNOWN_CAMERA_TRACK_PX:
+    if px > MAX_UNKNOWN_CAMERA_TRACK_PX or quarter > 2 * MAX_UNKNOWN_CAMERA_TRACK_PX:
         what = "estimated from the pair" if focal.get("source") == "estimated" else "guessed"
         raise InputError(
             f"the camera is unknown and the pose made with the focal length {what} leaves the dense matches, "
-            f"tracked freely, a median {px:.2f} px from its epipolar lines (at most {MAX_UNKNOWN_CAMERA_TRACK_PX:g} "
-            "px is needed): the geometry is not reliable without the camera; give it with --camera "
-            "\"PINHOLE W H fx fy cx cy\"")
+            f"tracked freely, a median {px:.2f} px from its epipolar lines and a quarter of them over {quarter:.2f} "
+            f"px (at most {MAX_UNKNOWN_CAMERA_TRACK_PX:g} and {2 * MAX_UNKNOWN_CAMERA_TRACK_PX:g} px are needed): "
+            "the geometry is not reliable without the camera; give it with --camera \"PINHOLE W H fx fy cx cy\"")
 
 
 def _mesh(result: PairResult, cfg: Config, uv1: np.ndarray, shape: tuple[int, int], focal: float):

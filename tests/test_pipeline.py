@@ -238,6 +238,24 @@ def test_a_refined_pose_is_used_where_the_tracks_favour_it_beyond_their_noise(af
     assert check["refined_line_shift_px"] < 0.05, check
 
 
+@pytest.mark.parametrize("median, quarter, refused", [(0.46, 0.8, False), (0.55, 0.8, True), (0.46, 2.1, True)])
+def test_an_unknown_cameras_pose_is_refused_where_its_tracks_lie_off_its_lines(median, quarter, refused):
+    """Without a camera, the pose must leave the free tracks a median within 0.5 px of its lines
+    and three quarters within 1 px: a guessed camera that fits one part of the image (a median
+    0.46 px, a quarter over 2.1 px, as Baby2 conv's) is refused as one a median 0.55 px off is."""
+    from sefm_recon.errors import InputError
+    from sefm_recon.pipeline import _check_unknown_camera
+
+    check = {"final_pose_epipolar_px": median, "final_pose_epipolar_p75_px": quarter}
+    focal = {"source": "default"}
+    if refused:
+        with pytest.raises(InputError, match=f"a median {median:.2f} px from its epipolar lines and a quarter"):
+            _check_unknown_camera(check, focal)
+    else:
+        _check_unknown_camera(check, focal)
+    assert focal["track_epipolar_px"] == median
+
+
 def test_tracks_biased_towards_a_wrong_pose_are_overruled_by_the_sift_inliers(small_scene, monkeypatch):
     """Tracks that all lie on the lines of a pose 0.3 deg off (as a tracker biased by a scale
     change can put them) favour that pose, but the SIFT inliers lie far from its lines, and the

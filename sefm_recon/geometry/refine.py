@@ -100,11 +100,12 @@ def track_dense(gray1: np.ndarray, gray2: np.ndarray, uv1: np.ndarray, uv2: np.n
     return DenseTracks(uv1[idx][keep].astype(np.float64), q2.reshape(-1, 2)[keep].astype(np.float64) + 0.5, len(idx))
 
 
-def pose_evidence(tv: TwoView, tracks: DenseTracks) -> float:
-    """Median distance (px) of the free tracks from the pose's epipolar lines (NaN: too few tracks)."""
+def pose_evidence(tv: TwoView, tracks: DenseTracks, percentile: float = 50.0) -> float:
+    """Median (or another ``percentile``) distance (px) of the free tracks from the pose's
+    epipolar lines (NaN: too few tracks)."""
     if len(tracks.uv1) < MIN_TRACKS:
         return float("nan")
-    return float(np.median(epipolar_distances(tv.F, tracks.uv1, tracks.uv2)))
+    return float(np.percentile(epipolar_distances(tv.F, tracks.uv1, tracks.uv2), percentile))
 
 
 def refine_pose(tv: TwoView, tracks: DenseTracks, size1: tuple[int, int], size2: tuple[int, int],
