@@ -472,7 +472,7 @@ def _check_unknown_camera(check: dict, focal: dict) -> None:
     if px is None:
         return
     quarter = check.get("final_pose_epipolar_p75_px") or px  # (both come from the same tracks)
-    focal["track_epipolar_px"] = px
+    focal["track_epipolar_px"], focal["track_epipolar_p75_px"] = px, quarter
     if px > MAX_UNKNOWN_CAMERA_TRACK_PX or quarter > 2 * MAX_UNKNOWN_CAMERA_TRACK_PX:
         what = "estimated from the pair" if focal.get("source") == "estimated" else "guessed"
         raise InputError(

@@ -253,7 +253,7 @@ def test_an_unknown_cameras_pose_is_refused_where_its_tracks_lie_off_its_lines(m
             _check_unknown_camera(check, focal)
     else:
         _check_unknown_camera(check, focal)
-    assert focal["track_epipolar_px"] == median
+    assert focal["track_epipolar_px"] == median and focal["track_epipolar_p75_px"] == quarter
 
 
 def test_tracks_biased_towards_a_wrong_pose_are_overruled_by_the_sift_inliers(small_scene, monkeypatch):
