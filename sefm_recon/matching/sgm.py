@@ -48,8 +48,7 @@ logger = logging.getLogger(__name__)
 __all__ = ["choose_jump_penalty", "coarse_parallax", "coarse_range", "CoarseParallax", "drop_carried_plain",
            "drop_collisions", "drop_fattened_cells", "drop_flat_windows", "drop_occluded_plain", "drop_outside_windows",
            "drop_range_ends", "drop_unanchored_far", "drop_unseen_far", "drop_unsupported_near", "every_parallax",
-           "extend_near",
-           "fit_plain_surfaces", "flat_windows", "jump_ladder", "match_pair_sgm", "parallax_columns",
+           "extend_near", "fit_plain_surfaces", "flat_windows", "jump_ladder", "match_pair_sgm", "parallax_columns",
            "pixel_matches", "plain_windows", "search_range", "sift_parallax_columns", "surface_median",
            "widen_range"]
 
@@ -466,19 +465,23 @@ def drop_unseen_far(disp: np.ndarray, span2: np.ndarray, shift: int, end: float,
     zoom +0.006..+0.022 of precision, no seed loses), real 0.9427 / 0.9664 / 0.8823 ->
     0.9430 / 0.9669 / 0.8825.
     """
-    return _drop_unseen_far(disp, span2, float(shift), float(end), float(invalid), BLOCK // 2)
+    return _drop_unseen_far(disp, _first_seen(span2, shift, end, disp.shape[1]), float(end), float(invalid))
+
+
+def _first_seen(span2: np.ndarray, shift: int, parallax: float, width: int) -> np.ndarray:
+    """(rows,) int64: per row, the first column whose matching window image 2 holds at every
+    parallax up to ``parallax`` (``drop_outside_windows``' bound: a cell at ``x`` sees image
+    2 at parallax up to ``x + shift - (span2[r, 0] + BLOCK // 2) + 0.5``), within 0..width."""
+    first = np.ceil(parallax - shift + span2[:, 0] + BLOCK // 2 - 0.5)
+    return np.clip(first, 0, width).astype(np.int64)
 
 
 @njit(parallel=True, cache=True)
-def _drop_unseen_far(disp, span2, shift, end, invalid, half):
-    rows, width = disp.shape
-    count = np.zeros(rows, np.int64)
-    for r in prange(rows):
-        a = span2[r, 0] + half
-        for x in range(width):
-            d = disp[r, x]
-            # the nearest parallax whose window lies inside image 2 (drop_outside_windows' bound)
-            if invalid < d < end and x + shift - a + 0.5 < end:
+def _drop_unseen_far(disp, first, end, invalid):
+    count = np.zeros(disp.shape[0], np.int64)
+    for r in prange(disp.shape[0]):
+        for x in range(first[r]):
+            if invalid < disp[r, x] < end:
                 disp[r, x] = invalid
                 count[r] += 1
     return count.sum()
@@ -512,9 +515,7 @@ def drop_unanchored_far(disp: np.ndarray, span2: np.ndarray, shift: int, end: fl
     ``disp`` (rows, width) float32 parallax in columns, invalid at or below ``invalid``;
     ``span2`` (rows, 2) and ``shift`` as for :func:`drop_outside_windows`.
     """
-    # per row, the first column whose window image 2 holds at every parallax up to `near`
-    # (the nearest parallax inside image 2, as in _drop_unseen_far)
-    first = np.ceil(near - shift + span2[:, 0] + BLOCK // 2 - 0.5).astype(np.int64)
+    first = _first_seen(span2, shift, near, disp.shape[1])
     return int(_drop_unanchored(disp, first, float(end), float(invalid), SAME_SURFACE_COLUMNS))
 
 
@@ -534,7 +535,7 @@ def _drop_unanchored(disp, first, end, invalid, tol):
     # surface to find, nor a forest of the whole line image to build
     todo = False
     for r in range(rows):
-        for x in range(min(max(first[r], 0), width)):
+        for x in range(first[r]):
             if invalid < disp[r, x] < end:
                 todo = True
                 break
@@ -556,12 +557,12 @@ def _drop_unanchored(disp, first, end, invalid, tol):
                         parent[max(a, b)] = min(a, b)
     anchored = np.zeros(rows * width, np.bool_)
     for r in range(rows):
-        for x in range(max(first[r], 0), width):
+        for x in range(first[r], width):
             if disp[r, x] > invalid:
                 anchored[_root(parent, r * width + x)] = True
     count = 0
     for r in range(rows):
-        for x in range(min(max(first[r], 0), width)):
+        for x in range(first[r]):
             if invalid < disp[r, x] < end and not anchored[_root(parent, r * width + x)]:
                 disp[r, x] = invalid
                 count += 1
@@ -1413,13 +1414,14 @@ def match_pair_sgm(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config,
     n_occ = drop_occluded_plain(disp, L1, plain, span2, min_d, min_d - 1.0) if opt.occlusion_check else 0
     n_car = drop_carried_plain(disp, L1, plain, min_d - 1.0) if opt.carried_check else 0
     del L1, L2
-    n_far = drop_unseen_far(disp, span2, min_d, lo + END_COLUMNS + 1, min_d - 1.0) if opt.far_check else 0
+    far_end, near_end = lo + END_COLUMNS + 1, hi - END_COLUMNS - 1  # the range within its end columns
+    n_far = drop_unseen_far(disp, span2, min_d, far_end, min_d - 1.0) if opt.far_check else 0
     if opt.far_surface_check:
-        n_far += drop_unanchored_far(disp, span2, min_d, lo + END_COLUMNS + 1, hi - END_COLUMNS - 1, min_d - 1.0)
+        n_far += drop_unanchored_far(disp, span2, min_d, far_end, near_end, min_d - 1.0)
     n_ends = drop_range_ends(disp, min_d, min_d + num_d - 1, min_d - 1.0) if opt.end_check else 0
     n_near = 0
     if found is not None and opt.near_check:
-        n_near = drop_unsupported_near(disp, grid, found, near, hi - END_COLUMNS - 1, min_d - 1.0)
+        n_near = drop_unsupported_near(disp, grid, found, near, near_end, min_d - 1.0)
     n_fat = drop_fattened_cells(disp, min_d - 1.0) if opt.edge_check else 0
     if opt.median:
         surface_median(disp, min_d - 1.0)
