@@ -388,6 +388,38 @@ def test_the_cells_dropped_at_depth_edges_are_wrong_far_more_often_than_the_rest
     assert wrong[at].mean() > 5 * wrong.mean()
 
 
+def test_the_left_right_check_drops_estimates_that_sgm_from_image_2_contradicts():
+    # image 2's line image is image 1's shifted by 12 columns: every cell's parallax is 12;
+    # a block of cells is given 30 instead (a surface matched onto the wrong texture), and
+    # SGM from image 2 (at half size) finds each of their partners matched at 12
+    import cv2
+
+    from sefm_recon.matching.sgm import drop_left_right
+
+    rng = np.random.default_rng(4)
+    tex = cv2.GaussianBlur(rng.uniform(0, 255, (64, 300, 3)).astype(np.float32), (0, 0), 1.5)
+    tex = cv2.normalize(tex, None, 20, 235, cv2.NORM_MINMAX).astype(np.uint8)
+    L1, L2 = np.ascontiguousarray(tex[:, :256]), np.ascontiguousarray(tex[:, 12:268])
+    disp = np.full((64, 256), -1.0, np.float32)
+    disp[:, 60:240] = 12.0
+    disp[20:40, 120:150] = 30.0
+    wrong = disp == 30.0
+    right = disp == 12.0
+    n = drop_left_right(disp, L1, L2, 0, 48, 32, True, -1.0)
+    assert n == np.count_nonzero(disp[wrong | right] == -1.0)
+    assert np.all(disp[wrong] == -1.0)
+    assert np.count_nonzero(disp[right] == 12.0) > 0.99 * right.sum()
+
+
+def test_the_cells_the_left_right_check_drops_are_wrong_far_more_often():
+    """On the lateral pair: the cells that SGM from image 2 contradicts are wrong (more than
+    1 px off, or hidden in image 2) far more often than the matches overall (measured: 87
+    cells, 32 % wrong against 0.26 %)."""
+    at, wrong, _, _ = _cells_a_check_drops("sgm.lr_check")
+    assert 20 < at.sum() < 0.01 * len(at)
+    assert wrong[at].mean() > 5 * wrong.mean()
+
+
 def _one_row_collision(d_far, d_near, colour_far, colour_near, colour2):
     """A row with two valid cells, 12 (parallax ``d_far``) and 16 (``d_near``), and image 2's
     column 2, where both land when the parallaxes are 10 and 14; returns the cells dropped."""
@@ -558,15 +590,17 @@ def test_the_plain_cells_dropped_beside_an_occlusion_are_wrong_far_more_often():
 def test_sgm_aggregation_across_lines_repairs_lines_without_signal(bad_rows, within_px):
     # rows of image 2 replaced by noise: on these lines alone no matcher finds the
     # partners (with 7 rows, a window of 5 on the middle ones is all noise); the paths
-    # from the lines above and below carry the right disparity across them. Measured:
-    # 98 % within 1 px (3 rows), 99 % within 3 px and 73 % within 1 px (7 rows).
+    # from the lines above and below carry the right disparity across them. Measured: 96 %
+    # of the 3 rows matched, all within 1 px; 58 % of the 7 rows' middle three, 99 % within
+    # 3 px and 95 % within 1 px (the left-right check drops some of the estimates that image
+    # 2's noise cannot confirm: without it 61 %, 97 % and 89 %).
     from sefm_recon.matching.sgm import match_pair_sgm
 
     img1, img2, tv, d = _lateral_pair(corrupt_rows=bad_rows)
     res = match_pair_sgm(img1, img2, tv, load_config(None, []))
     ij, truth, err = _disparity_errors(res, d)
     on = (ij[:, 1] >= 119) & (ij[:, 1] <= 121) & np.isfinite(truth)
-    assert on.sum() > 0.6 * np.isfinite(d[119:122]).sum()  # most of the bad lines are matched
+    assert on.sum() > 0.5 * np.isfinite(d[119:122]).sum()  # most of the bad lines are matched
     assert np.mean(err[on] < within_px) > 0.95  # and matched right
 
 
@@ -575,7 +609,9 @@ def test_sgm_matches_a_slanted_floor_along_the_edge_of_the_line_images():
     # whose disparity grows by 1 px a row. At the edge of the line images, paths across
     # the lines arrive only from the plane; with the diagonals too (OpenCV's 8 paths)
     # they outvote the paths along the lines. Measured: 77 % of the floor matched and
-    # 65 % of that within 1 px with 8 paths; 98 % and 84 % with the four full paths.
+    # 65 % of that within 1 px with 8 paths; 96 % and 80 % with the four full paths. (The
+    # left-right check is off: at half size a row averages two lines, a column of parallax
+    # apart on this floor, and keeps 78 % of it; at half a column a line, every match.)
     import cv2
 
     from sefm_recon.matching.sgm import match_pair_sgm
@@ -594,7 +630,7 @@ def test_sgm_matches_a_slanted_floor_along_the_edge_of_the_line_images():
     tv = _two_view(np.eye(3), [-1.0, 0, 0])
     tv.kp1, tv.kp2 = kp1, kp1 - np.column_stack([kd, 0 * kd])
     to_rgb = lambda g: np.repeat(np.clip(g, 0, 255).astype(np.uint8)[..., None], 3, axis=2)
-    res = match_pair_sgm(to_rgb(T[:, x]), to_rgb(img2), tv, load_config(None, []))
+    res = match_pair_sgm(to_rgb(T[:, x]), to_rgb(img2), tv, load_config(None, ["sgm.lr_check=false"], internal=True))
     ij = np.floor(res.uv1).astype(int)
     err = np.abs(res.uv1[:, 0] - res.uv2[:, 0] - d[ij[:, 1]])
     floor = (ij[:, 1] >= h - s) & (ij[:, 0] >= 40)  # left of x = 40 some pixels leave image 2
