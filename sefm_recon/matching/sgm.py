@@ -1204,6 +1204,8 @@ def drop_left_right(disp: np.ndarray, L1: np.ndarray, L2: np.ndarray, shift: int
     """
     f = LR_REDUCTION
     size = (L1.shape[1] // f, L1.shape[0] // f)
+    if min(size) < BLOCK:  # fewer reduced lines or columns than a window: nothing to judge by
+        return 0
     r1, r2 = (np.ascontiguousarray(cv2.resize(L[: f * size[1], : f * size[0]], size, interpolation=cv2.INTER_AREA)
                                    [:, ::-1]) for L in (L1, L2))
     nd = int(math.ceil(num_d / f / 16.0)) * 16
