@@ -47,25 +47,25 @@ logger = logging.getLogger(__name__)
 
 __all__ = ["choose_jump_penalty", "coarse_parallax", "coarse_range", "CoarseParallax", "drop_carried_plain",
            "drop_collisions", "drop_fattened_cells", "drop_flat_windows", "drop_left_right", "drop_occluded_plain",
-           "drop_outside_windows", "drop_range_ends", "drop_unanchored_far", "drop_unseen_far", "drop_unsupported_near", "every_parallax",
-           "extend_near", "fit_plain_surfaces", "flat_windows", "jump_ladder", "match_pair_sgm", "parallax_columns",
-           "pixel_matches", "plain_windows", "search_range", "sift_parallax_columns", "surface_median",
-           "widen_range"]
+           "drop_outside_windows", "drop_range_ends", "drop_unanchored_far", "drop_unseen_far",
+           "drop_unsupported_near", "every_parallax", "extend_near", "fit_plain_surfaces", "flat_windows",
+           "jump_ladder", "match_pair_sgm", "parallax_columns", "pixel_matches", "plain_windows", "search_range",
+           "sift_parallax_columns", "surface_median", "widen_range"]
 
 #: StereoSGBM's settings, those of the evaluation's planar SGBM peer: 5x5 blocks, OpenCV's
 #: recommended smoothness penalties P1 = 8 C B^2 and P2 = 32 C B^2 (C channels; the
 #: multiples of C B^2 below), a speckle filter over windows of 100 px within 2 disparities,
 #: and a left-right check within 1 disparity (:data:`LR_MAX_DIFF`: OpenCV's own check,
 #: ``disp12MaxDiff``, changes no pixel in this build; ours is :func:`drop_left_right`); the
-#: uniqueness margin and the switches of the ablation are in ``cfg.sgm``. (3x3 blocks gained 0.005-0.01 on the real pairs but
-#: lost 0.02-0.09 on the noisier generated scenes.)
+#: uniqueness margin and the switches of the ablation are in ``cfg.sgm``. (3x3 blocks gained
+#: 0.005-0.01 on the real pairs but lost 0.02-0.09 on the noisier generated scenes.)
 BLOCK = 5
 SPECKLE_WINDOW = 100
 SPECKLE_RANGE = 2
 LR_MAX_DIFF = 1
 #: The left-right check's second SGM (from image 2 to image 1) runs on copies of the line
 #: images reduced this many times on both axes, its tolerance :data:`LR_MAX_DIFF` columns
-#: there. At half size it costs an eighth of the first (0.3 s on the bench pair) and judges
+#: there. At half size it costs an eighth of the first (0.24 s on the bench pair) and judges
 #: better than at full size: its windows see twice the texture and half the sensor noise.
 #: Measured (true pose, p@1 / p@3 / cov@1, against no check): generated 0.9027 / 0.9636 /
 #: 0.6537 -> 0.9229 / 0.9798 / 0.6501 at half size, 0.9189 / 0.9757 / 0.6376 at full size;
@@ -1163,6 +1163,11 @@ def pixel_matches(disp: np.ndarray, min_disparity: float, grid: LineGrid, tv: Tw
     return out1[:m], out2[:m], out_X[:m], out_r[:m]
 
 
+def _num_disparities(span: float) -> int:
+    """OpenCV's ``numDisparities`` for a search over ``span`` columns: rounded up to a multiple of 16."""
+    return int(math.ceil(span / 16.0)) * 16
+
+
 def _sgbm(L1: np.ndarray, L2: np.ndarray, min_d: int, num_d: int, uniqueness: int, *, full_paths: bool = True,
           speckle: bool = True, jump: int = JUMP_PENALTY) -> tuple[np.ndarray, bool]:
     """OpenCV's StereoSGBM (the settings above) over line images whose image 2 is shifted by
@@ -1208,7 +1213,7 @@ def drop_left_right(disp: np.ndarray, L1: np.ndarray, L2: np.ndarray, shift: int
         return 0
     r1, r2 = (np.ascontiguousarray(cv2.resize(L[: f * size[1], : f * size[0]], size, interpolation=cv2.INTER_AREA)
                                    [:, ::-1]) for L in (L1, L2))
-    nd = int(math.ceil(num_d / f / 16.0)) * 16
+    nd = _num_disparities(num_d / f)
     back, _ = _sgbm(r2, r1, 0, nd, 0, full_paths=full_paths, speckle=False, jump=jump)
     back = np.ascontiguousarray(back[:, ::-1])  # parallax of image 2's reduced cells, -1: none
     return int(_drop_left_right(disp, back, float(shift), float(invalid), float(f), float(LR_MAX_DIFF)).sum())
@@ -1263,7 +1268,7 @@ def _cells_kept(L1: np.ndarray, L2: np.ndarray, num_d: int, opt,
     penalty run once); ``kept`` holds the counts run so far."""
     size = (L1.shape[1] // reduction, L1.shape[0] // reduction)
     s1, s2 = (cv2.resize(L, size, interpolation=cv2.INTER_AREA) for L in (L1, L2))
-    nd = int(math.ceil(num_d / reduction / 16.0)) * 16
+    nd = _num_disparities(num_d / reduction)
     # the aggregation the full-size run will use (four full paths only where its volume fits)
     full = opt.full_paths and _volume_fits(L1, num_d)
     flat = flat_windows(s1) if opt.flat_check else None  # the same for every penalty
@@ -1354,7 +1359,7 @@ def coarse_parallax(img1: np.ndarray, img2: np.ndarray, tv: TwoView, grid: LineG
         return None
     to_fine = gc.u_step / grid.u_step  # full-size columns per coarse column
     min_d = int(math.floor(lo / to_fine)) - 1
-    num_d = int(math.ceil((hi / to_fine - min_d + 2) / 16.0)) * 16
+    num_d = _num_disparities(hi / to_fine - min_d + 2)
     gc.pad = num_d + 1
     L1, L2 = line_images(small[0], small[1], tvc, gc, gc.pad + gc.columns + 1, shift2=min_d, bicubic=False)
     disp, _ = _sgbm(L1, L2, min_d, num_d, cfg.sgm.uniqueness)
@@ -1464,7 +1469,7 @@ def match_pair_sgm(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config,
             c_lo, c_hi = widen_range(*spans, opt.range_margin)
             lo, hi = max(lo, c_lo), min(hi, c_hi)
     min_d = int(math.floor(lo))
-    num_d = int(math.ceil((hi - lo + 1) / 16.0)) * 16  # OpenCV: a multiple of 16
+    num_d = _num_disparities(hi - lo + 1)
     # Image 2's line image is shifted by min_d, so that OpenCV searches 0..num_d; the pad
     # left of image 1's columns holds the search window of its first columns.
     grid.pad = num_d + 1
