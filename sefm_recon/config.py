@@ -246,6 +246,7 @@ class SgmConfig:
     internal, only the evaluation and the tests change them (:mod:`.matching.sgm`)."""
 
     full_paths: bool = True  #: 4 full paths where the cost volume fits (false: always OpenCV's 3 directions)
+    half_fill: bool = True  #: give the cells SGM leaves without an estimate the estimate of SGM at half size
     lr_check: bool = True  #: drop the estimates a second SGM, from image 2 at half size, puts over a column away
     uniqueness: int = 10  #: best cost this many percent below the second best (0 = off)
     jump_penalty: int = 0  #: SGM's P2 in units of channels x block area (0: chosen per pair, sgm.choose_jump_penalty)

@@ -51,6 +51,7 @@ MOTIONS = ("lateral", "converging", "forward", "zoom")
 SGM_ABLATIONS: dict[str, list[str]] = {
     "SGM over polar line images, all stages (default)": [],
     "- 4 full aggregation paths (OpenCV's 3 directions)": ["sgm.full_paths=false"],
+    "- cells left without an estimate filled by SGM at half size": ["sgm.half_fill=false"],
     "- left-right check (SGM from image 2 at half size)": ["sgm.lr_check=false"],
     "- uniqueness test": ["sgm.uniqueness=0"],
     "- jump penalty chosen per pair (OpenCV's 32)": ["sgm.jump_penalty=32"],
