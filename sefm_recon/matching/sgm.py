@@ -91,8 +91,9 @@ LR_REDUCTION = 2
 #: without the test 0.9067 / 0.9716 / 0.7128 and 0.9447 / 0.9683 / 0.8835 (generated
 #: seed 16's shaded sphere and the real Plastic's plain walls filled wrong).
 FILL_MIN_ZNCC = math.sqrt(0.5)
-#: ...over 7x7 halved cells (14x14 pixels): enough samples that noise alone correlates
-#: within about 0.15 (one over the square root of 49).
+#: ...over 7x7 halved cells (14x14 pixels): enough samples that noise alone rarely
+#: correlates by 0.7 (its spread about 0.15, one over the square root of 49, somewhat more
+#: as the Sobel correlates neighbouring cells), yet local enough for a slanted surface.
 FILL_WINDOW = 7
 STEP_PENALTY = 8
 JUMP_PENALTY = 32
