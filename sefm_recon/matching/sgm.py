@@ -1296,6 +1296,10 @@ def fill_from_half_size(disp: np.ndarray, L1: np.ndarray, L2: np.ndarray, shift:
     r1, r2 = halves
     half, _ = _sgbm(r1, r2, 0, _num_disparities(num_d / f), uniqueness, full_paths=full_paths, speckle=speckle,
                     jump=jump)
+    # a reduced cell k is read only for the cells of rows (and columns) 2k - 1 .. 2k + 2
+    # without an estimate: the others need no test (most of a textured pair's)
+    unset = cv2.dilate((disp <= invalid).view(np.uint8), np.ones((2 * f, 2 * f), np.uint8), anchor=(f - 1, f - 1))
+    half[unset[::f, ::f][: half.shape[0], : half.shape[1]] == 0] = -1.0
     d1, d2 = (cv2.Sobel(to_gray(r), cv2.CV_32F, 1, 0, ksize=3) for r in (r1, r2))
     _drop_uncorrelated(half, d1, d2, FILL_WINDOW // 2, FILL_MIN_ZNCC)
     return int(_fill_from_reduced(disp, half, float(shift), float(invalid), float(f)).sum())
