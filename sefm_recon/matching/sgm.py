@@ -1174,8 +1174,8 @@ def pixel_matches(disp: np.ndarray, min_disparity: float, grid: LineGrid, tv: Tw
     m = 0
     for y0 in range(0, h, rows_per_chunk):
         n = w * (min(h, y0 + rows_per_chunk) - y0)
-        _read_back(disp, xs, reach, joined, g, basis, K1inv, P2, baseline, w, y0, float(size2[0]), float(size2[1]), uv2[:n],
-                   X[:n], row[:n])
+        _read_back(disp, xs, reach, joined, g, basis, K1inv, P2, baseline, w, y0, float(size2[0]), float(size2[1]),
+                   uv2[:n], X[:n], row[:n])
         m = _compact(uv2[:n], X[:n], row[:n], w, y0, out1, out2, out_X, out_r, m)
     return out1[:m], out2[:m], out_X[:m], out_r[:m]
 
@@ -1656,14 +1656,14 @@ def match_pair_sgm(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config,
         "valid_matches": int(len(uv1)),
         "jump_penalty": int(jump),  # SGM's P2 chosen for the pair (in units of C B^2)
     }
-    logger.info("SGM (%s): %d line pairs, %d dense (%d of them from SGM at half size; %d contradicted by SGM from image 2, %d more at the ends of "
-                "the search, %d on windows without "
+    logger.info("SGM (%s): %d line pairs, %d dense (%d of them from SGM at half size; %d contradicted by SGM from "
+                "image 2, %d more at the ends of the search, %d on windows without "
                 "signal, %d on windows beyond image 2, %d sharing a pixel of image 2 with another surface, %d "
                 "carried into an unmatched plain region, %d carried across a depth jump on a plain region, %d far "
                 "where image 2 sees no nearer parallax or on a surface it sees nowhere at every one, %d near "
                 "without a coarse surface there and %d fattened at depth edges dropped), %d on plain windows fitted "
                 "to their surface's plane, %d filled on plain planes and %d moved onto them, %d on plain regions "
                 "mostly unmatched and on no one plane dropped, %d valid",
-                "4 full paths" if full else "3 directions", counts["line_pairs"], n_dense, n_half, n_lr, n_ends, n_flat, n_out,
-                n_col, n_occ, n_car, n_far, n_near, n_fat, n_fit, n_planes, n_moved, n_scattered, len(uv1))
+                "4 full paths" if full else "3 directions", counts["line_pairs"], n_dense, n_half, n_lr, n_ends, n_flat,
+                n_out, n_col, n_occ, n_car, n_far, n_near, n_fat, n_fit, n_planes, n_moved, n_scattered, len(uv1))
     return DenseMatches(uv1, uv2, score, rows, X, counts, timings)
