@@ -446,7 +446,7 @@ def test_the_half_size_fill_matches_a_texture_of_low_contrast():
 
 
 def test_the_half_size_fill_leaves_a_shaded_plain_surface():
-    # a ramp along the lines (shading) under the same noise: SGM at half size puts some
+    # a ramp along the lines (shading) under noise of 2 levels: SGM at half size puts some
     # parallax on it, but the derivatives' correlation is the noise's, and nothing is filled
     # (measured: none; without the correlation test, 36 % of the cells)
     from sefm_recon.matching.sgm import fill_from_half_size
