@@ -394,7 +394,7 @@ def test_the_left_right_check_drops_estimates_that_sgm_from_image_2_contradicts(
     # SGM from image 2 (at half size) finds each of their partners matched at 12
     import cv2
 
-    from sefm_recon.matching.sgm import drop_left_right
+    from sefm_recon.matching.sgm import drop_left_right, halve_line_images
 
     rng = np.random.default_rng(4)
     tex = cv2.GaussianBlur(rng.uniform(0, 255, (64, 300, 3)).astype(np.float32), (0, 0), 1.5)
@@ -405,7 +405,7 @@ def test_the_left_right_check_drops_estimates_that_sgm_from_image_2_contradicts(
     disp[20:40, 120:150] = 30.0
     wrong = disp == 30.0
     right = disp == 12.0
-    n = drop_left_right(disp, L1, L2, 0, 48, 32, True, -1.0)
+    n = drop_left_right(disp, halve_line_images(L1, L2), 0, 48, 32, True, -1.0)
     assert n == np.count_nonzero(disp[wrong | right] == -1.0)
     assert np.all(disp[wrong] == -1.0)
     assert np.count_nonzero(disp[right] == 12.0) > 0.99 * right.sum()
@@ -428,7 +428,7 @@ def test_the_half_size_fill_matches_a_texture_of_low_contrast():
     # texture and half the noise, and what it fills is right (measured 73 % filled, all right)
     import cv2
 
-    from sefm_recon.matching.sgm import _sgbm, fill_from_half_size
+    from sefm_recon.matching.sgm import _sgbm, fill_from_half_size, halve_line_images
 
     rng = np.random.default_rng(5)
     clouds = cv2.GaussianBlur(rng.normal(0, 1, (64, 300)), (0, 0), 3.0)
@@ -437,7 +437,7 @@ def test_the_half_size_fill_matches_a_texture_of_low_contrast():
     assert np.mean(np.abs(full[:, 60:][full[:, 60:] >= 0] - 12.0) <= 1.0) < 0.9
     disp = np.full((64, 256), -1.0, np.float32)
     disp[:, :60] = 12.0  # cells with an estimate keep it
-    n = fill_from_half_size(disp, L1, L2, 0, 48, 32, True, 10, True, -1.0)
+    n = fill_from_half_size(disp, halve_line_images(L1, L2), 0, 48, 32, True, 10, True, -1.0)
     filled = disp[:, 60:] > -1.0
     assert n == filled.sum()
     assert filled[4:-4, 60:-4].mean() > 0.6  # (the first columns' partners lie beyond image 2)
@@ -449,13 +449,13 @@ def test_the_half_size_fill_leaves_a_shaded_plain_surface():
     # a ramp along the lines (shading) under noise of 2 levels: SGM at half size puts some
     # parallax on it, but the derivatives' correlation is the noise's, and nothing is filled
     # (measured: none; without the correlation test, 36 % of the cells)
-    from sefm_recon.matching.sgm import fill_from_half_size
+    from sefm_recon.matching.sgm import fill_from_half_size, halve_line_images
 
     rng = np.random.default_rng(6)
     ramp = np.tile(np.linspace(90, 170, 300), (64, 1))
     L1, L2 = _low_contrast_pair(rng, ramp)
     disp = np.full((64, 256), -1.0, np.float32)
-    n = fill_from_half_size(disp, L1, L2, 0, 48, 32, True, 10, True, -1.0)
+    n = fill_from_half_size(disp, halve_line_images(L1, L2), 0, 48, 32, True, 10, True, -1.0)
     assert n == np.count_nonzero(disp > -1.0) < 0.01 * disp.size
 
 

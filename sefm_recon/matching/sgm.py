@@ -48,10 +48,10 @@ logger = logging.getLogger(__name__)
 
 __all__ = ["choose_jump_penalty", "coarse_parallax", "coarse_range", "CoarseParallax", "drop_carried_plain",
            "drop_collisions", "drop_fattened_cells", "drop_flat_windows", "drop_left_right", "drop_occluded_plain",
-           "drop_outside_windows", "drop_range_ends", "drop_unanchored_far", "drop_unseen_far",
-           "drop_unsupported_near", "every_parallax", "extend_near", "fit_plain_surfaces", "flat_windows",
-           "jump_ladder", "match_pair_sgm", "parallax_columns", "pixel_matches", "plain_windows", "search_range",
-           "sift_parallax_columns", "surface_median", "widen_range"]
+           "drop_outside_windows", "drop_range_ends", "drop_unanchored_far", "drop_unseen_far", "drop_unsupported_near",
+           "every_parallax", "extend_near", "fill_from_half_size", "fit_plain_surfaces", "flat_windows",
+           "halve_line_images", "jump_ladder", "match_pair_sgm", "parallax_columns", "pixel_matches", "plain_windows",
+           "search_range", "sift_parallax_columns", "surface_median", "widen_range"]
 
 #: StereoSGBM's settings, those of the evaluation's planar SGBM peer: 5x5 blocks, OpenCV's
 #: recommended smoothness penalties P1 = 8 C B^2 and P2 = 32 C B^2 (C channels; the
@@ -1205,8 +1205,8 @@ def _sgbm(L1: np.ndarray, L2: np.ndarray, min_d: int, num_d: int, uniqueness: in
     return disp, full
 
 
-def drop_left_right(disp: np.ndarray, L1: np.ndarray, L2: np.ndarray, shift: int, num_d: int, jump: int,
-                    full_paths: bool, invalid: float) -> int:
+def drop_left_right(disp: np.ndarray, halves: tuple[np.ndarray, np.ndarray] | None, shift: int, num_d: int,
+                    jump: int, full_paths: bool, invalid: float) -> int:
     """The left-right check: set the disparities that a second SGM, from image 2 to image 1,
     contradicts to ``invalid``, in place; returns how many.
 
@@ -1220,12 +1220,11 @@ def drop_left_right(disp: np.ndarray, L1: np.ndarray, L2: np.ndarray, shift: int
     matched by chance). Where neither holds one (beyond the second search) it stays.
 
     ``disp`` (rows, width) float32 parallax in columns, invalid at or below ``invalid``;
-    ``L1``, ``L2`` the line images SGM matched, image 2's shifted by ``shift`` columns (a
-    cell ``x`` of parallax ``d`` matches ``x - (d - shift)`` in ``L2``), searched over
-    ``num_d`` columns.
+    ``halves`` the line images SGM matched, reduced (:func:`halve_line_images`; None: too
+    small, nothing judged), image 2's shifted by ``shift`` columns (a cell ``x`` of parallax
+    ``d`` matches ``x - (d - shift)`` in line image 2), searched over ``num_d`` columns.
     """
     f = LR_REDUCTION
-    halves = _halved(L1, L2, f)
     if halves is None:
         return 0
     r1, r2 = (np.ascontiguousarray(r[:, ::-1]) for r in halves)
@@ -1260,18 +1259,20 @@ def _drop_left_right(disp, back, shift, invalid, f, tol):
     return count
 
 
-def _halved(L1: np.ndarray, L2: np.ndarray, f: int) -> tuple[np.ndarray, np.ndarray] | None:
-    """Copies of the line images ``L1``, ``L2`` reduced ``f`` times on both axes (area
-    average, cut to a multiple of ``f``); None where they would hold fewer lines or
-    columns than a window (:data:`BLOCK`): nothing to match there."""
+def halve_line_images(L1: np.ndarray, L2: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """Copies of the line images ``L1``, ``L2`` reduced :data:`LR_REDUCTION` times on both axes
+    (area average, cut to a multiple of it), for :func:`fill_from_half_size` and
+    :func:`drop_left_right`; None where they would hold fewer lines or columns than a
+    window (:data:`BLOCK`): nothing to match there."""
+    f = LR_REDUCTION
     size = (L1.shape[1] // f, L1.shape[0] // f)
     if min(size) < BLOCK:
         return None
     return tuple(cv2.resize(L[: f * size[1], : f * size[0]], size, interpolation=cv2.INTER_AREA) for L in (L1, L2))
 
 
-def fill_from_half_size(disp: np.ndarray, L1: np.ndarray, L2: np.ndarray, shift: int, num_d: int, jump: int,
-                        full_paths: bool, uniqueness: int, speckle: bool, invalid: float) -> int:
+def fill_from_half_size(disp: np.ndarray, halves: tuple[np.ndarray, np.ndarray] | None, shift: int, num_d: int,
+                        jump: int, full_paths: bool, uniqueness: int, speckle: bool, invalid: float) -> int:
     """Coarse to fine: give the cells SGM left without an estimate (``disp`` at or below
     ``invalid``) the estimate of SGM over the line images reduced :data:`LR_REDUCTION`
     times on both axes, in place; returns how many.
@@ -1286,11 +1287,11 @@ def fill_from_half_size(disp: np.ndarray, L1: np.ndarray, L2: np.ndarray, shift:
     a reduced column of each other (one surface). The checks after SGM (the left-right
     check first) judge these estimates as SGM's own.
 
-    ``disp`` (rows, width) float32 parallax in columns; ``L1``, ``L2`` the line images SGM
-    matched, image 2's shifted by ``shift`` columns, searched over ``num_d`` columns.
+    ``disp`` (rows, width) float32 parallax in columns; ``halves`` the line images SGM
+    matched, reduced (:func:`halve_line_images`; None: too small, nothing filled), image 2's
+    shifted by ``shift`` columns, searched over ``num_d`` columns.
     """
     f = LR_REDUCTION
-    halves = _halved(L1, L2, f)
     if halves is None:
         return 0
     r1, r2 = halves
@@ -1598,10 +1599,13 @@ def match_pair_sgm(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config,
     jump = opt.jump_penalty or choose_jump_penalty(L1, L2, num_d, opt)
     disp, full = _sgbm(L1, L2, min_d, num_d, opt.uniqueness, full_paths=opt.full_paths, speckle=opt.speckle,
                        jump=jump)
-    n_half = 0
+    halves = halve_line_images(L1, L2) if opt.half_fill or opt.lr_check else None  # one copy for both
+    n_half = n_lr = 0
     if opt.half_fill:
-        n_half = fill_from_half_size(disp, L1, L2, min_d, num_d, jump, full, opt.uniqueness, opt.speckle, min_d - 1.0)
-    n_lr = drop_left_right(disp, L1, L2, min_d, num_d, jump, full, min_d - 1.0) if opt.lr_check else 0
+        n_half = fill_from_half_size(disp, halves, min_d, num_d, jump, full, opt.uniqueness, opt.speckle, min_d - 1.0)
+    if opt.lr_check:
+        n_lr = drop_left_right(disp, halves, min_d, num_d, jump, full, min_d - 1.0)
+    del halves
     n_flat = drop_flat_windows(disp, L1, min_d - 1.0) if opt.flat_check else 0
     n_out = drop_outside_windows(disp, span2, min_d, min_d - 1.0) if opt.outside_check else 0
     n_col = drop_collisions(disp, L1, L2, min_d, min_d - 1.0) if opt.collision_check else 0
