@@ -247,6 +247,7 @@ class SgmConfig:
 
     full_paths: bool = True  #: 4 full paths where the cost volume fits (false: always OpenCV's 3 directions)
     half_fill: bool = True  #: give the cells SGM leaves without an estimate the estimate of SGM at half size
+    half_check: bool = True  #: drop the estimates SGM at half size, sure there, puts over 3 columns away
     lr_check: bool = True  #: drop the estimates a second SGM, from image 2 at half size, puts over a column away
     uniqueness: int = 10  #: best cost this many percent below the second best (0 = off)
     jump_penalty: int = 0  #: SGM's P2 in units of channels x block area (0: chosen per pair, sgm.choose_jump_penalty)

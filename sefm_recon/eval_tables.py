@@ -51,6 +51,7 @@ MOTIONS = ("lateral", "converging", "forward", "zoom")
 SGM_ABLATIONS: dict[str, list[str]] = {
     "SGM over polar line images, all stages (default)": [],
     "- 4 full aggregation paths (OpenCV's 3 directions)": ["sgm.full_paths=false"],
+    "- estimates that SGM at half size, sure there, contradicts dropped": ["sgm.half_check=false"],
     "- cells left without an estimate filled by SGM at half size": ["sgm.half_fill=false"],
     "- left-right check (SGM from image 2 at half size)": ["sgm.lr_check=false"],
     "- uniqueness test": ["sgm.uniqueness=0"],

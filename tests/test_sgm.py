@@ -428,7 +428,7 @@ def test_the_half_size_fill_matches_a_texture_of_low_contrast():
     # texture and half the noise, and what it fills is right (measured 73 % filled, all right)
     import cv2
 
-    from sefm_recon.matching.sgm import _sgbm, fill_from_half_size, halve_line_images
+    from sefm_recon.matching.sgm import _sgbm, fill_from_half_size, half_size_sgm, halve_line_images
 
     rng = np.random.default_rng(5)
     clouds = cv2.GaussianBlur(rng.normal(0, 1, (64, 300)), (0, 0), 3.0)
@@ -437,7 +437,8 @@ def test_the_half_size_fill_matches_a_texture_of_low_contrast():
     assert np.mean(np.abs(full[:, 60:][full[:, 60:] >= 0] - 12.0) <= 1.0) < 0.9
     disp = np.full((64, 256), -1.0, np.float32)
     disp[:, :60] = 12.0  # cells with an estimate keep it
-    n = fill_from_half_size(disp, halve_line_images(L1, L2), 0, 48, 32, True, 10, True, -1.0)
+    halves = halve_line_images(L1, L2)
+    n = fill_from_half_size(disp, halves, half_size_sgm(halves, 48, 32, True, 10, True), 0, -1.0)
     filled = disp[:, 60:] > -1.0
     assert n == filled.sum()
     assert filled[4:-4, 60:-4].mean() > 0.6  # (the first columns' partners lie beyond image 2)
@@ -449,14 +450,41 @@ def test_the_half_size_fill_leaves_a_shaded_plain_surface():
     # a ramp along the lines (shading) under noise of 2 levels: SGM at half size puts some
     # parallax on it, but the derivatives' correlation is the noise's, and nothing is filled
     # (measured: none; without the correlation test, 36 % of the cells)
-    from sefm_recon.matching.sgm import fill_from_half_size, halve_line_images
+    from sefm_recon.matching.sgm import fill_from_half_size, half_size_sgm, halve_line_images
 
     rng = np.random.default_rng(6)
     ramp = np.tile(np.linspace(90, 170, 300), (64, 1))
     L1, L2 = _low_contrast_pair(rng, ramp)
     disp = np.full((64, 256), -1.0, np.float32)
-    n = fill_from_half_size(disp, halve_line_images(L1, L2), 0, 48, 32, True, 10, True, -1.0)
+    halves = halve_line_images(L1, L2)
+    n = fill_from_half_size(disp, halves, half_size_sgm(halves, 48, 32, True, 10, True), 0, -1.0)
     assert n == np.count_nonzero(disp > -1.0) < 0.01 * disp.size
+
+
+def test_the_half_size_check_drops_an_estimate_on_another_surface_and_keeps_the_near_ones():
+    # clouds of 20 grey levels under noise of 1, every cell's parallax 12: SGM at half size
+    # is sure of them (measured 73 % of the reduced cells estimated, all within half a
+    # reduced column); a block of full-size estimates at 20 is dropped, those at 12 and 13.5
+    # (within the check's 3 columns) stay, with image 2's line image shifted or not
+    import cv2
+
+    from sefm_recon.matching.sgm import drop_off_half_size, half_size_sgm, halve_line_images
+
+    rng = np.random.default_rng(7)
+    clouds = cv2.GaussianBlur(rng.normal(0, 1, (64, 300)), (0, 0), 2.0)
+    L1, L2 = _low_contrast_pair(rng, 128 + 20 * clouds / clouds.std(), noise=1.0)
+    half = half_size_sgm(halve_line_images(L1, L2), 48, 32, True, 10, True)
+    assert np.mean(np.abs(half[half >= 0] - 6.0) <= 0.5) > 0.99
+    disp = np.full((64, 256), 12.0, np.float32)
+    disp[:, :60] = -1.0  # (the first columns' partners lie beyond image 2)
+    disp[20:40, 100:140] = 20.0
+    disp[40:50, 150:200] = 13.5
+    for shift in (0, 5):  # image 2's line image shifted by 5 columns: every parallax 5 more
+        d = np.where(disp >= 0, disp + shift, shift - 1.0).astype(np.float32)
+        n = drop_off_half_size(d, half, shift, shift - 1.0)
+        dropped = d < shift
+        assert n == 20 * 40 == np.count_nonzero(dropped[:, 60:])
+        assert dropped[20:40, 100:140].all()
 
 
 def test_the_cells_the_left_right_check_drops_are_wrong_far_more_often():
@@ -624,11 +652,11 @@ def test_the_plain_cells_dropped_beside_an_occlusion_are_wrong_far_more_often():
     20 px strip hidden behind the square in image 2 among them): the cells the occlusion
     check drops are wrong (more than 1 px off, or hidden in image 2) far more often than
     the matches overall, and most of the hidden strip is left unmatched. Without the
-    half-size fill, which leaves the check less to drop (measured with it: 240 cells, 11 %
-    wrong against 2.5 %); measured without: 572 cells, 27 % wrong against 2.7 %, the strip
-    29 % matched without the check, 23 % with."""
+    half-size fill and check, which leave the check less to drop (measured with the fill:
+    240 cells, 11 % wrong against 2.5 %; with the check alone, 468); measured without: 572
+    cells, 27 % wrong against 2.7 %, the strip 29 % matched without the check, 23 % with."""
     at, wrong, kept, d = _cells_a_check_drops("sgm.occlusion_check", plain=(70, 150),
-                                              extra=("sgm.half_fill=false",))
+                                              extra=("sgm.half_fill=false", "sgm.half_check=false"))
     assert at.sum() > 500
     assert wrong[at].mean() > 5 * wrong.mean()
     strip = np.zeros(d.shape, bool)
