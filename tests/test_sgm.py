@@ -863,6 +863,26 @@ def test_the_near_extension_follows_a_surface_without_gaps_and_stops_at_one():
     assert extend_near(200.0, found) == 200.0  # the one estimate beyond lies 100 columns off
 
 
+def test_the_near_extension_follows_the_plain_cells_of_a_textured_surface_but_not_a_plain_one():
+    from sefm_recon.matching.sgm import CoarseParallax, extend_near
+
+    step = 2.0
+    p = np.full((3, 11), np.nan, np.float32)
+    p[0] = np.arange(50.0, 71.0, step)  # a weakly textured surface coming nearer: 50 .. 70
+    p[2] = np.arange(92.0, 71.0, -step)  # a plain one beyond it, 72 under 70, not joined (row 1 holds nothing)
+    textured = np.zeros(p.shape, bool)
+    textured[0, [0, -1]] = True  # the first surface's texture at its two ends alone, 20 columns apart
+    found = CoarseParallax(p, textured, step)
+    assert extend_near(48.0, found) == 70.0
+    textured[0, -1] = False  # a textured cell at 50 still vouches for its surface up to 70
+    assert extend_near(48.0, found) == 70.0
+    textured[0, 0] = False  # no textured cell left: no surface to follow
+    assert extend_near(48.0, found) == 48.0
+    p[1, -1] = 71.0  # the plain surface joined to the textured one through a neighbour within one coarse column
+    textured[0, 0] = True
+    assert extend_near(48.0, CoarseParallax(p, textured, step)) == 92.0
+
+
 def test_estimates_at_the_near_end_stay_only_where_the_coarse_pass_found_a_surface_that_near():
     from sefm_recon.matching.sgm import CoarseParallax, drop_unsupported_near
 
