@@ -91,13 +91,14 @@ def test_matches_split_over_two_depths_or_too_few_fill_nothing():
     assert len(fill_planes(gray, (W, H), tv, *_matches(tv, wider)).uv1) > 0
 
 
-def test_a_plain_wall_matched_in_a_third_of_its_pixels_is_filled_between_them():
-    # SGM leaves a plain wall's matches scattered (Midd1's back wall: 30-37 % matched, and
-    # the share swings with the pose); where they lie on one plane, the holes between take it
+def test_a_plain_wall_matched_in_a_quarter_of_its_pixels_is_filled_between_them():
+    # SGM leaves a plain wall's matches scattered (Midd1's back wall: 24-37 % matched, and
+    # the share swings with the pose); where they lie on one plane, the holes between take
+    # it, also where the matches are sparser (here a third on the left, 15 % on the right)
     tv, gray = _scene()
     rng = np.random.default_rng(4)
     px = _plain_pixels()
-    some = rng.random(len(px)) < 0.33
+    some = rng.random(len(px)) < np.where(px[:, 1] < 130, 0.33, 0.15)
     fill = fill_planes(gray, (W, H), tv, *_matches(tv, px[some]))
     holes = {tuple(p) for p in (px[~some][:, ::-1] + 0.5)}
     got = {tuple(p) for p in fill.uv1}
