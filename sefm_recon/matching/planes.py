@@ -51,10 +51,11 @@ MIN_REGION_SHARE = 0.01
 #: The plain walls SGM leaves mostly unmatched hold 24-37 % (Midd1, Midd2, Plastic's lower
 #: left corner), and how much a wall gets swings with the pose's last tenths of a pixel
 #: (Midd1 conv's wall: 24 % with the true pose, 27 % with the tool's own; rect 37 % and
-#: 30 %): a fifth fills them all. At half (before), these walls stayed 0.03-0.05 of coverage
-#: at 1 px below what their fills give them, at no cost in precision (real pairs 0.9526 /
-#: 0.8756 -> 0.9529 / 0.8806, p@1 / cov@1), and the own pose's Midd1 rect 0.031 behind the
-#: true pose's (0.026 now). From a quarter: the same, but Midd1 conv's true pose unfilled.
+#: 30 %): a fifth fills them all. At half, these walls stayed 0.03-0.05 of coverage at 1 px
+#: below what their fills give them, at no cost in precision (real pairs 0.9526 / 0.8756 ->
+#: 0.9529 / 0.8806, p@1 / cov@1), and the own pose's Midd1 rect wall went unfilled (0.031
+#: of coverage behind the true pose's). From a quarter: the same, but Midd1 conv's true
+#: pose unfilled.
 MIN_MATCHED_SHARE = 0.2
 #: A region under this share matched is mostly unmatched: its matches are dropped where
 #: they lie on no one plane (:data:`MAX_SCATTERED_SUPPORT`).
