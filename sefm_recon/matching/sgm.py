@@ -603,6 +603,22 @@ def _surface_forest(disp, invalid, tol):
 
 
 @njit(cache=True)
+def _anchored_cells(parent, anchor):
+    """(n,) bool: the cells whose tree in ``parent`` holds a cell of ``anchor``."""
+    n = len(parent)
+    root = np.empty(n, np.int32)
+    anchored = np.zeros(n, np.bool_)
+    for i in range(n):
+        root[i] = _root(parent, i)
+        if anchor[i]:
+            anchored[root[i]] = True
+    out = np.empty(n, np.bool_)
+    for i in range(n):
+        out[i] = anchored[root[i]]
+    return out
+
+
+@njit(cache=True)
 def _drop_unanchored(disp, first, end, invalid, tol):
     rows, width = disp.shape
     # without a far end estimate that image 2 does not see at every parallax there is no
@@ -617,16 +633,15 @@ def _drop_unanchored(disp, first, end, invalid, tol):
             break
     if not todo:
         return 0
-    parent = _surface_forest(disp, invalid, tol)  # each cell's surface
-    anchored = np.zeros(rows * width, np.bool_)
+    anchor = np.zeros(rows * width, np.bool_)  # the estimates image 2 sees at every parallax
     for r in range(rows):
         for x in range(first[r], width):
-            if disp[r, x] > invalid:
-                anchored[_root(parent, r * width + x)] = True
+            anchor[r * width + x] = disp[r, x] > invalid
+    anchored = _anchored_cells(_surface_forest(disp, invalid, tol), anchor)
     count = 0
     for r in range(rows):
         for x in range(first[r]):
-            if invalid < disp[r, x] < end and not anchored[_root(parent, r * width + x)]:
+            if invalid < disp[r, x] < end and not anchored[r * width + x]:
                 disp[r, x] = invalid
                 count += 1
     return count
@@ -1595,30 +1610,14 @@ def coarse_range(img1: np.ndarray, img2: np.ndarray, tv: TwoView, grid: LineGrid
     return float(c_lo), float(c_hi)
 
 
-@njit(cache=True)
-def _anchored_cells(parent, anchor):
-    """(n,) bool: the cells whose tree in ``parent`` holds a cell of ``anchor``."""
-    n = len(parent)
-    root = np.empty(n, np.int32)
-    anchored = np.zeros(n, np.bool_)
-    for i in range(n):
-        root[i] = _root(parent, i)
-        if anchor[i]:
-            anchored[root[i]] = True
-    out = np.empty(n, np.bool_)
-    for i in range(n):
-        out[i] = anchored[root[i]]
-    return out
-
-
 def _on_textured_surface(found: CoarseParallax) -> np.ndarray:
     """(rows, columns) bool: the coarse estimates on a surface (joined through neighbours
     along a row or across rows within one coarse column, :data:`SAME_SURFACE_COLUMNS`)
     that holds a textured one (:attr:`CoarseParallax.textured`)."""
-    p = np.where(np.isfinite(found.parallax), found.parallax, -np.inf).astype(np.float32)
+    finite = np.isfinite(found.parallax)
+    p = np.where(finite, found.parallax, -np.inf).astype(np.float32)
     parent = _surface_forest(p, -np.inf, SAME_SURFACE_COLUMNS * found.step)
-    anchor = (found.textured & np.isfinite(found.parallax)).ravel()
-    return _anchored_cells(parent, anchor).reshape(p.shape) & np.isfinite(found.parallax)
+    return _anchored_cells(parent, (found.textured & finite).ravel()).reshape(p.shape) & finite
 
 
 def extend_near(hi: float, found: CoarseParallax) -> float:
@@ -1643,8 +1642,7 @@ def extend_near(hi: float, found: CoarseParallax) -> float:
     side the coarse estimates beyond the SIFT points were plain walls carried towards
     parallax 0, none real (Midd1, Midd2, Monopoly: 8-22 % of their estimates).
     """
-    p = found.parallax[_on_textured_surface(found) & (found.parallax > hi)]  # (NaN > hi is False)
-    p = np.unique(p)
+    p = np.unique(found.parallax[_on_textured_surface(found) & (found.parallax > hi)])  # (NaN > hi is False)
     if len(p) == 0:
         return hi
     gaps = np.diff(p, prepend=hi) > MARGIN_COLUMNS + found.step
