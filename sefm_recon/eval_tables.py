@@ -77,6 +77,7 @@ SGM_ABLATIONS: dict[str, list[str]] = {
     "- holes of plain planes filled": ["sgm.planes=false"],
     "- matches without signal on plain planes moved onto them": ["sgm.plane_snap=false"],
     "- matches of plain regions mostly unmatched and on no one plane dropped": ["sgm.scattered_check=false"],
+    "- small plain regions on the plane of their rim": ["sgm.rim_planes=false"],
 }
 
 #: Ablation rows of the sequential DP: each removes (or, marked +, adds) one stage beyond the paper.

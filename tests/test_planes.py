@@ -208,3 +208,69 @@ def test_a_region_not_one_plane_all_through_keeps_its_matches():
     uv1, uv2, X, _ = _slanted(tv, px, wave)
     fill = fill_planes(gray, (W, H), tv, uv1, uv2, X)
     assert len(fill.moved) > 0.9 * len(uv1) and (uv1[fill.moved, 0] < 212).all()
+
+
+def _small_square_scene(seed=5):
+    """Image 1 textured all over but for a plain 16 px square (its region, a pixel short of its
+    blurred edges: about 100 px, a small one), every pixel of image 1 as (y, x) index pairs,
+    and which of them lie on the region (its label, once)."""
+    K = np.array([[F, 0, W / 2], [0, F, H / 2], [0, 0, 1.0]])
+    tv = TwoView(K, K, np.eye(3), np.array([-1.0, 0, 0]))
+    rng = np.random.default_rng(seed)
+    gray = rng.integers(0, 256, (H, W)).astype(np.uint8)
+    gray[80:96, 110:126] = 128
+    labels, stats = plain_regions(gray)
+    k = labels[88, 118]
+    assert k > 0 and 100 <= stats[k, 4] < 0.01 * W * H  # one small region
+    yy, xx = np.mgrid[0:H, 0:W]
+    return tv, gray, np.column_stack([yy.ravel(), xx.ravel()]), labels.ravel() == k
+
+
+def test_a_small_plain_region_takes_the_plane_of_its_rim():
+    tv, gray, px, square = _small_square_scene()
+    rng = np.random.default_rng(6)
+    # the region's matches: half of them, scattered 0.5-1.5 columns either side of the plane
+    # (set by SGM's smoothness penalties, no signal), the other half unmatched
+    kept = ~square | (rng.random(len(px)) < 0.5)
+    wave = np.where(square, rng.choice([-1.0, 1.0], len(px)) * rng.uniform(0.5, 1.5, len(px)), 0.0)[kept]
+    uv1, uv2, X, true2 = _slanted(tv, px[kept], wave)
+    fill = fill_planes(gray, (W, H), tv, uv1, uv2, X)
+    holes = {tuple(p) for p in px[square & ~kept][:, ::-1] + 0.5}
+    got = {tuple(p) for p in fill.uv1}
+    assert holes and holes <= got  # every unmatched pixel of the region
+    truth = fill.uv1 - np.column_stack([DISP + 0.04 * (fill.uv1[:, 0] - W / 2), np.zeros(len(fill.uv1))])
+    assert np.abs(fill.uv2 - truth).max() < 0.05  # on the rim's plane
+    moved = np.zeros(len(uv1), bool)
+    moved[fill.moved] = True
+    on_region = square.reshape(H, W)[uv1[:, 1].astype(int), uv1[:, 0].astype(int)]
+    assert moved[on_region].all() and not moved[~on_region].any()  # the region's own, nothing else
+    assert np.abs(fill.moved_uv2 - true2[fill.moved]).max() < 0.05
+    # switched off: the small region stays as it was
+    off = fill_planes(gray, (W, H), tv, uv1, uv2, X, rims=False)
+    assert len(off.uv1) == 0 and len(off.moved) == 0
+
+
+def test_a_small_region_on_its_rims_plane_with_its_own_signal_or_a_rim_on_two_surfaces_stays():
+    tv, gray, px, square = _small_square_scene()
+    # matches within 0.1 px of the plane (a surface SGM follows): they keep their own estimate
+    rng = np.random.default_rng(7)
+    kept = ~square | (rng.random(len(px)) < 0.5)
+    wave = np.where(square, rng.uniform(-0.1, 0.1, len(px)), 0.0)[kept]
+    uv1, uv2, X, _ = _slanted(tv, px[kept], wave)
+    fill = fill_planes(gray, (W, H), tv, uv1, uv2, X)
+    assert len(fill.moved) == 0 and len(fill.uv1) > 0  # its holes are filled all the same
+    # the region's right part unmatched, and its rim there too (a band along an occlusion):
+    # only the holes with the plane's matches on all four sides are filled
+    open_right = (px[:, 1] >= 118) & (px[:, 1] < 127) & (px[:, 0] >= 83) & (px[:, 0] < 93)
+    assert 0.3 < (square & open_right).sum() / square.sum() < 0.7
+    kept = ~open_right
+    uv1, uv2, X, _ = _slanted(tv, px[kept], np.zeros(int(kept.sum())))
+    fill = fill_planes(gray, (W, H), tv, uv1, uv2, X)
+    assert len(fill.uv1) == 0
+    # the rim on two surfaces (its top side, a third of it, 4 columns nearer): no plane,
+    # nothing filled, though the region's own matches lie on the plane of the rest
+    kept = ~square | (rng.random(len(px)) < 0.5)
+    wave = np.where(~square & (px[:, 0] < 83), 4.0, 0.0)[kept]
+    uv1, uv2, X, _ = _slanted(tv, px[kept], wave)
+    fill = fill_planes(gray, (W, H), tv, uv1, uv2, X)
+    assert len(fill.uv1) == 0

@@ -24,6 +24,13 @@ its winner is set by the smoothness penalties alone, so that a slanted plain
 surface comes out as a wave of fronto-parallel steps around the plane (Plastic's
 box face: 1-1.7 px off over runs of 20-40 px, more than the local plane fit of
 :func:`.sgm.fit_plain_surfaces` spans).
+
+Small plain regions (:func:`_rim_planes`) hold too few matches of their own for a
+plane, but their rim, the intensity edge around them, is texture SGM matches well:
+where the rim's matches lie on one plane, the region's unmatched pixels enclosed by
+them take that plane, and where the region's own matches scatter about a plane (set
+by the smoothness penalties, not by a signal) they move onto the rim's (the checker
+squares of a slanted floor: 1-3 px off, and left unmatched in part).
 """
 
 from __future__ import annotations
@@ -129,6 +136,31 @@ SNAP_WINDOW = 5
 #: side) the plane came 0.19 px off at the region's ends after one, 0.03 (least squares' own)
 #: after two and three.
 SNAP_FITS = 2
+#: Plain regions from this many pixels (a 10 px square) up to the large ones
+#: (:data:`MIN_REGION_SHARE`) are judged by their rim (:func:`_rim_planes`); smaller ones lie
+#: within the 9 x 9 window of the local plane fit (:func:`.sgm.fit_plain_surfaces`).
+MIN_RIM_REGION = 100
+#: The rim: the pixels within this many px outside the region. The regions stop a pixel
+#: short of their edges (:func:`plain_regions`), so 3 px reach across a 1-2 px edge.
+RIM_PX = 3
+#: At least this share of the rim must hold a match: a rim matched in part (an occlusion
+#: edge, a partner beyond image 2) gives a plane of one side only.
+MIN_RIM_MATCHED = 0.5
+#: ...and this share of the rim's matches must lie within 1 px of their plane (the precision
+#: judged, the large regions' RANSAC threshold): a rim along a depth edge holds two surfaces.
+MIN_RIM_SUPPORT = 0.9
+#: The region's own matches within this many px of the rim's plane are on it (SGM's matches on
+#: a slanted plain region lie 1-3 px off, the generated converging floors' checker squares)...
+RIM_SNAP_PX = 3.0
+#: ...and where fewer than this share of them are, the region holds another surface (a hole
+#: showing what lies behind): it is left alone.
+MIN_RIM_INNER = 0.5
+#: The region's matches move onto the rim's plane only where they scatter about their own
+#: best plane by more than this many px (median): SGM's matches on a surface with a signal lie
+#: 0.1-0.36 px from it (the real pairs' small regions, a curved one among them, whose rim's plane
+#: is 0.6 px off its middle), on plain squares of a slanted floor set by the smoothness
+#: penalties 0.48-0.72 px (generated seed 9); 0.4 lies between.
+MIN_RIM_SCATTER = 0.4
 
 
 class PlaneFill(NamedTuple):
@@ -217,9 +249,39 @@ def _inverse_depth_plane(uv1: np.ndarray, z: np.ndarray) -> np.ndarray | None:
     """``(a, b, c)``: the plane through the points seen at ``uv1`` (N, 2) at depths ``z`` (N,),
     as the inverse depth 1 / z = a u + b v + c (exact for a plane; least squares in inverse
     depth, to which parallax is proportional); ``None`` where they lie on one line."""
-    A = np.column_stack([uv1, np.ones(len(uv1))])
-    abc, _, rank, _ = np.linalg.lstsq(A, 1.0 / z, rcond=None)
-    return abc if rank == 3 else None
+    abc = _fit_inverse_depth(np.ascontiguousarray(uv1, np.float64), np.ascontiguousarray(z, np.float64))
+    return None if np.isnan(abc[0]) else abc
+
+
+@njit(cache=True)
+def _fit_inverse_depth(uv1, z):
+    """:func:`_inverse_depth_plane`'s least squares about the points' mean; NaNs where they
+    lie on one line (the 2 x 2 covariance of the pixels singular)."""
+    n = uv1.shape[0]
+    out = np.full(3, np.nan)
+    if n < 3:
+        return out
+    mu = mv = mw = 0.0
+    for i in range(n):
+        mu += uv1[i, 0]
+        mv += uv1[i, 1]
+        mw += 1.0 / z[i]
+    mu, mv, mw = mu / n, mv / n, mw / n
+    cuu = cvv = cuv = cuw = cvw = 0.0
+    for i in range(n):
+        du, dv, dw = uv1[i, 0] - mu, uv1[i, 1] - mv, 1.0 / z[i] - mw
+        cuu += du * du
+        cvv += dv * dv
+        cuv += du * dv
+        cuw += du * dw
+        cvw += dv * dw
+    det = cuu * cvv - cuv * cuv
+    if not det > 1e-12 * cuu * cvv:  # (and a zero spread)
+        return out
+    out[0] = (cuw * cvv - cvw * cuv) / det
+    out[1] = (cvw * cuu - cuw * cuv) / det
+    out[2] = mw - out[0] * mu - out[1] * mv
+    return out
 
 
 def _on_plane(tv, uv1: np.ndarray, abc: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -237,7 +299,37 @@ def _on_plane(tv, uv1: np.ndarray, abc: np.ndarray) -> tuple[np.ndarray, np.ndar
     return uv2, X, ok
 
 
-def _snap_plane(tv, uv1: np.ndarray, uv2: np.ndarray, z: np.ndarray,
+class _Pose(NamedTuple):
+    """The pair's geometry as :func:`_distance_to_plane` takes it (camera 1's inverse once)."""
+
+    K1inv: np.ndarray  #: (3, 3)
+    R: np.ndarray  #: (3, 3) camera 2 from camera 1
+    t: np.ndarray  #: (3,)
+    K2: np.ndarray  #: (3, 3)
+
+
+def _pose(tv) -> _Pose:
+    return _Pose(np.linalg.inv(tv.K1), np.asarray(tv.R, np.float64), np.asarray(tv.t, np.float64).ravel(),
+                 np.asarray(tv.K2, np.float64))
+
+
+def _iterated_plane(pose: _Pose, uv1: np.ndarray, uv2: np.ndarray, z: np.ndarray, near: np.ndarray, fits: int,
+                    px: float, share: float) -> tuple[np.ndarray | None, np.ndarray]:
+    """The plane of the scene (:func:`_inverse_depth_plane`) of matches ``uv1``, ``uv2`` (N, 2)
+    at depths ``z`` (N,), fitted from ``near`` (N,) bool, then ``fits`` times from the matches
+    within ``px`` of the last plane, where at least ``share`` of them (and 8) lie there each
+    time, and those matches; else ``(None, ...)``."""
+    for _ in range(fits):
+        plane = _inverse_depth_plane(uv1[near], z[near])
+        if plane is None:
+            return None, near
+        near = _plane_distance(pose, uv1, uv2, plane) <= px
+        if np.count_nonzero(near) < 8 or np.mean(near) < share:
+            return None, near
+    return _inverse_depth_plane(uv1[near], z[near]), near
+
+
+def _snap_plane(pose: _Pose, uv1: np.ndarray, uv2: np.ndarray, z: np.ndarray,
                 inliers: np.ndarray) -> tuple[np.ndarray | None, np.ndarray]:
     """A region's plane of the scene (:func:`_inverse_depth_plane`: 3 parameters, it cannot
     bend to follow part of SGM's wave as a homography's 8 can) and its matches within
@@ -245,24 +337,134 @@ def _snap_plane(tv, uv1: np.ndarray, uv2: np.ndarray, z: np.ndarray,
     ``uv1``, ``uv2`` (N, 2) at depths ``z`` (N,); else ``(None, ...)``. Fitted from
     ``inliers`` (N,) bool (RANSAC's), then :data:`SNAP_FITS` times from the matches near the
     last plane: the wave's runs beyond 1 px, left out of the first, are in the last."""
-    near = inliers
-    for _ in range(SNAP_FITS):
-        plane = _inverse_depth_plane(uv1[near], z[near])
+    return _iterated_plane(pose, uv1, uv2, z, inliers, SNAP_FITS, SNAP_PX, SNAP_SHARE)
+
+
+def _plane_distance(pose: _Pose, uv1: np.ndarray, uv2: np.ndarray, abc: np.ndarray) -> np.ndarray:
+    """(N,) px from each match ``uv2`` to the partner the plane ``abc`` gives ``uv1`` (inf behind a camera)."""
+    return _distance_to_plane(np.ascontiguousarray(uv1, np.float64), np.ascontiguousarray(uv2, np.float64),
+                              np.asarray(abc, np.float64), *pose)
+
+
+@njit(cache=True)
+def _distance_to_plane(uv1, uv2, abc, K1inv, R, t, K2):
+    """:func:`_plane_distance`, as :func:`_on_plane` finds the partners."""
+    n = uv1.shape[0]
+    out = np.full(n, np.inf)
+    for i in range(n):
+        u, v = uv1[i, 0], uv1[i, 1]
+        w = abc[0] * u + abc[1] * v + abc[2]
+        if not w > 0:
+            continue
+        # the ray's point at inverse depth w (camera 1), in camera 2's frame, in its image
+        s = 1.0 / (w * (K1inv[2, 0] * u + K1inv[2, 1] * v + K1inv[2, 2]))
+        X0 = (K1inv[0, 0] * u + K1inv[0, 1] * v + K1inv[0, 2]) * s
+        X1 = (K1inv[1, 0] * u + K1inv[1, 1] * v + K1inv[1, 2]) * s
+        X2 = (K1inv[2, 0] * u + K1inv[2, 1] * v + K1inv[2, 2]) * s
+        y0 = R[0, 0] * X0 + R[0, 1] * X1 + R[0, 2] * X2 + t[0]
+        y1 = R[1, 0] * X0 + R[1, 1] * X1 + R[1, 2] * X2 + t[1]
+        y2 = R[2, 0] * X0 + R[2, 1] * X1 + R[2, 2] * X2 + t[2]
+        x2 = K2[2, 0] * y0 + K2[2, 1] * y1 + K2[2, 2] * y2
+        if x2 > 0:
+            out[i] = np.hypot((K2[0, 0] * y0 + K2[0, 1] * y1 + K2[0, 2] * y2) / x2 - uv2[i, 0],
+                              (K2[1, 0] * y0 + K2[1, 1] * y1 + K2[1, 2] * y2) / x2 - uv2[i, 1])
+    return out
+
+
+def _rim_plane(pose: _Pose, uv1: np.ndarray, uv2: np.ndarray, z: np.ndarray) -> tuple[np.ndarray | None, np.ndarray]:
+    """The plane of a rim's matches ``uv1``, ``uv2`` (N, 2) at depths ``z`` (N,), fitted from all,
+    then :data:`SNAP_FITS` + 1 times from those within 1 px of the last, where at least
+    :data:`MIN_RIM_SUPPORT` of them lie there, and those matches (N,) bool; else ``(None, ...)``."""
+    return _iterated_plane(pose, uv1, uv2, z, np.ones(len(uv1), bool), SNAP_FITS + 1, 1.0, MIN_RIM_SUPPORT)
+
+
+def _scatter(pose: _Pose, uv1: np.ndarray, uv2: np.ndarray, z: np.ndarray) -> float:
+    """Median px of matches (N, 2) at depths ``z`` (N,) from their own least-squares plane
+    (inf for fewer than 8, or matches on one line)."""
+    own = _inverse_depth_plane(uv1, z) if len(uv1) >= 8 else None
+    return np.inf if own is None else float(np.median(_plane_distance(pose, uv1, uv2, own)))
+
+
+def _enclosed(on: np.ndarray) -> np.ndarray:
+    """(H, W) bool: the pixels with a True of ``on`` (H, W) bool on each of their four sides
+    along their row and column (or on themselves)."""
+    def before(a, axis):
+        return np.logical_or.accumulate(a, axis=axis)
+
+    return (before(on, 1) & before(on[:, ::-1], 1)[:, ::-1] & before(on, 0) & before(on[::-1], 0)[::-1])
+
+
+def _rim_planes(tv, labels: np.ndarray, stats: np.ndarray, uv1: np.ndarray, uv2: np.ndarray, X: np.ndarray,
+                matched: np.ndarray, size2: tuple[int, int], *, fill: bool, snap: bool):
+    """The small plain regions (:data:`MIN_RIM_REGION` px up to :data:`MIN_REGION_SHARE`) on
+    the plane of their rim's matches (:func:`_rim_plane`): the unmatched pixels of a region
+    enclosed along their row and column by matches on the plane (``fill``; a band along an
+    occlusion or image 2's border is open on one side) take the plane's partner, and the
+    region's own matches within :data:`RIM_SNAP_PX` of it move onto it where they scatter about
+    their own plane by over :data:`MIN_RIM_SCATTER` (``snap``).
+
+    ``labels``, ``stats``: :func:`plain_regions`; ``uv1``, ``uv2`` (N, 2), ``X`` (N, 3) the
+    matches; ``matched`` (H, W) bool their pixels of image 1. Returns ``(add1, add2, moved,
+    planes)``: lists of the pixels filled (n, 2) and their partners, of the indices of the
+    matches moved and their planes (m, 3), one entry a region.
+    """
+    h, w = labels.shape
+    areas = stats[:, cv2.CC_STAT_AREA]
+    small = np.flatnonzero((areas >= MIN_RIM_REGION) & (areas < MIN_REGION_SHARE * h * w))
+    add1, add2, moved, planes = [], [], [], []
+    if len(small) == 0 or not (fill or snap):
+        return add1, add2, moved, planes
+    pose = _pose(tv)
+    px, py = uv1[:, 0].astype(np.int64), uv1[:, 1].astype(np.int64)
+    index = np.full((h, w), -1, np.int64)  # the match of each pixel of image 1
+    index[py, px] = np.arange(len(uv1))
+    kernel = np.ones((2 * RIM_PX + 1, 2 * RIM_PX + 1), np.uint8)
+    for k in small:
+        x0, y0, bw, bh = stats[k, :4]
+        xa, ya, xb, yb = max(x0 - RIM_PX, 0), max(y0 - RIM_PX, 0), min(x0 + bw + RIM_PX, w), min(y0 + bh + RIM_PX, h)
+        region = labels[ya:yb, xa:xb] == k
+        rim = cv2.dilate(region.view(np.uint8), kernel).view(bool) & ~region
+        crop = index[ya:yb, xa:xb]
+        ring = crop[rim]
+        ring = ring[ring >= 0]
+        if len(ring) < max(8, MIN_RIM_MATCHED * np.count_nonzero(rim)):
+            continue
+        plane, on_rim = _rim_plane(pose, uv1[ring], uv2[ring], X[ring, 2])
         if plane is None:
-            return None, near
-        q2, _, ok = _on_plane(tv, uv1, plane)
-        near = ok & (np.linalg.norm(q2 - uv2, axis=1) <= SNAP_PX)
-        if np.mean(near) < SNAP_SHARE:
-            return None, near
-    return _inverse_depth_plane(uv1[near], z[near]), near
+            continue
+        inner = crop[region]
+        inner = inner[inner >= 0]
+        near = _plane_distance(pose, uv1[inner], uv2[inner], plane) <= RIM_SNAP_PX
+        if len(inner) and np.mean(near) < MIN_RIM_INNER:  # another surface inside
+            continue
+        own = inner[near]
+        if snap and len(own) and _scatter(pose, uv1[own], uv2[own], X[own, 2]) > MIN_RIM_SCATTER:
+            moved.append(own)
+            planes.append(np.broadcast_to(plane, (len(own), 3)))
+        if not fill:
+            continue
+        on = np.zeros(region.shape, bool)
+        for i in (ring[on_rim], own):
+            on[py[i] - ya, px[i] - xa] = True
+        ys, xs = np.nonzero(region & ~matched[ya:yb, xa:xb] & _enclosed(on))
+        if len(ys):
+            p1 = np.column_stack([xs + xa + 0.5, ys + ya + 0.5])
+            p2, _, ok = _on_plane(tv, p1, plane)
+            ok &= (p2[:, 0] >= 0) & (p2[:, 0] < size2[0]) & (p2[:, 1] >= 0) & (p2[:, 1] < size2[1])
+            add1.append(p1[ok])
+            add2.append(p2[ok])
+    return add1, add2, moved, planes
 
 
 def fill_planes(gray1: np.ndarray, size2: tuple[int, int], tv, uv1: np.ndarray, uv2: np.ndarray, X: np.ndarray,
-                *, fill: bool = True, snap: bool = True, drop: bool = True, seed: int = 0) -> PlaneFill:
+                *, fill: bool = True, snap: bool = True, drop: bool = True, rims: bool = True,
+                seed: int = 0) -> PlaneFill:
     """Partners for the unmatched pixels of image 1's large plain regions whose matches lie on
     one plane (``fill``), for the matches without signal of the regions that are one plane
     all through (``snap``, :data:`SNAP_PX`), and the matches of the regions mostly unmatched
-    whose matches lie on no one plane, to drop (``drop``, :data:`MAX_SCATTERED_SUPPORT`).
+    whose matches lie on no one plane, to drop (``drop``, :data:`MAX_SCATTERED_SUPPORT`);
+    with ``rims``, the same fill and move for the small regions from their rim's plane
+    (:func:`_rim_planes`).
 
     Args:
         gray1: (H, W) uint8 image 1 (working size).
@@ -281,7 +483,7 @@ def fill_planes(gray1: np.ndarray, size2: tuple[int, int], tv, uv1: np.ndarray, 
     big = np.flatnonzero(areas >= MIN_REGION_SHARE * h * w)
     none2, none3 = np.zeros((0, 2)), np.zeros((0, 3))
     empty = PlaneFill(none2, none2, none3, 0, np.zeros(0, np.int64), none2, none3, np.zeros(0, np.int64))
-    if len(big) == 0 or len(uv1) == 0 or not (fill or snap or drop):
+    if len(uv1) == 0 or not (fill or snap or drop):
         return empty
     lab, matched = _region_of_matches(np.ascontiguousarray(uv1), labels)
     quiet = quiet_windows(gray1, SNAP_WINDOW, SNAP_LEVELS) if snap else None
@@ -311,7 +513,7 @@ def fill_planes(gray1: np.ndarray, size2: tuple[int, int], tv, uv1: np.ndarray, 
             continue
         if snap:
             own1 = uv1[idx]  # the region's matches in image 1
-            plane, near = _snap_plane(tv, own1, uv2[idx], X[idx, 2], on_plane)
+            plane, near = _snap_plane(_pose(tv), own1, uv2[idx], X[idx, 2], on_plane)
             if plane is not None:
                 near &= quiet[own1[:, 1].astype(np.int64), own1[:, 0].astype(np.int64)]
                 moved.append(idx[near])
@@ -336,6 +538,10 @@ def fill_planes(gray1: np.ndarray, size2: tuple[int, int], tv, uv1: np.ndarray, 
         inside = (p2[:, 0] >= 0) & (p2[:, 0] < size2[0]) & (p2[:, 1] >= 0) & (p2[:, 1] < size2[1])
         add1.append(p1[inside])
         add2.append(p2[inside])
+    if rims:
+        more = _rim_planes(tv, labels, stats, uv1, uv2, X, matched, size2, fill=fill, snap=snap)
+        for into, part in zip((add1, add2, moved, planes), more):
+            into.extend(part)
     out = empty
     if dropped:
         out = out._replace(dropped=np.concatenate(dropped))
