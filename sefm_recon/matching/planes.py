@@ -206,17 +206,30 @@ def _region_of_matches(uv1, labels):
 
 
 @njit(cache=True)
-def _nearest_depth(uv2, X, R, t, w2, h2):
-    """Per pixel of image 2 (h2, w2), the smallest camera-2 depth (``R X + t``) of the matches landing in it."""
+def _nearest_depth(uv2, X, R, t, w2, h2, skip, uv2_more, X_more):
+    """Per pixel of image 2 (h2, w2), the smallest camera-2 depth (``R X + t``) of the matches
+    landing in it: ``uv2``, ``X`` (N, 2), (N, 3) but those of the indices ``skip`` (sorted),
+    and ``uv2_more``, ``X_more`` (the skipped ones where they land now; no copy of the N)."""
     zbuf = np.full((h2, w2), np.inf, np.float32)
+    _add_depths(zbuf, uv2_more, X_more, R, t, np.zeros(0, np.int64))
+    _add_depths(zbuf, uv2, X, R, t, skip)
+    return zbuf
+
+
+@njit(cache=True)
+def _add_depths(zbuf, uv2, X, R, t, skip):
+    h2, w2 = zbuf.shape
+    k = 0
     for i in range(uv2.shape[0]):
+        if k < len(skip) and skip[k] == i:
+            k += 1
+            continue
         x = int(uv2[i, 0])
         y = int(uv2[i, 1])
         if 0 <= x < w2 and 0 <= y < h2:
             z = R[2, 0] * X[i, 0] + R[2, 1] * X[i, 1] + R[2, 2] * X[i, 2] + t[2]
             if z < zbuf[y, x]:
                 zbuf[y, x] = z
-    return zbuf
 
 
 @njit(cache=True)
@@ -394,6 +407,15 @@ def _enclosed(on: np.ndarray) -> np.ndarray:
     return (before(on, 1) & before(on[:, ::-1], 1)[:, ::-1] & before(on, 0) & before(on[::-1], 0)[::-1])
 
 
+@njit(cache=True)
+def _match_index(uv1, h, w):
+    """(h, w) int32: the index of the match ``uv1`` (N, 2) at each pixel of image 1, -1 where none."""
+    index = np.full((h, w), -1, np.int32)
+    for i in range(uv1.shape[0]):
+        index[int(uv1[i, 1]), int(uv1[i, 0])] = i
+    return index
+
+
 def _rim_planes(tv, labels: np.ndarray, stats: np.ndarray, uv1: np.ndarray, uv2: np.ndarray, X: np.ndarray,
                 matched: np.ndarray, size2: tuple[int, int], *, fill: bool, snap: bool):
     """The small plain regions (:data:`MIN_RIM_REGION` px up to :data:`MIN_REGION_SHARE`) on
@@ -415,9 +437,7 @@ def _rim_planes(tv, labels: np.ndarray, stats: np.ndarray, uv1: np.ndarray, uv2:
     if len(small) == 0 or not (fill or snap):
         return add1, add2, moved, planes
     pose = _pose(tv)
-    px, py = uv1[:, 0].astype(np.int64), uv1[:, 1].astype(np.int64)
-    index = np.full((h, w), -1, np.int64)  # the match of each pixel of image 1
-    index[py, px] = np.arange(len(uv1))
+    index = _match_index(np.ascontiguousarray(uv1), h, w)
     kernel = np.ones((2 * RIM_PX + 1, 2 * RIM_PX + 1), np.uint8)
     for k in small:
         x0, y0, bw, bh = stats[k, :4]
@@ -445,7 +465,7 @@ def _rim_planes(tv, labels: np.ndarray, stats: np.ndarray, uv1: np.ndarray, uv2:
             continue
         on = np.zeros(region.shape, bool)
         for i in (ring[on_rim], own):
-            on[py[i] - ya, px[i] - xa] = True
+            on[uv1[i, 1].astype(np.int64) - ya, uv1[i, 0].astype(np.int64) - xa] = True
         ys, xs = np.nonzero(region & ~matched[ya:yb, xa:xb] & _enclosed(on))
         if len(ys):
             p1 = np.column_stack([xs + xa + 0.5, ys + ya + 0.5])
@@ -552,12 +572,13 @@ def fill_planes(gray1: np.ndarray, size2: tuple[int, int], tv, uv1: np.ndarray, 
     if not add1 or sum(map(len, add1)) < MIN_FILL_SHARE * len(uv1):
         return out
     a1, a2 = np.concatenate(add1), np.concatenate(add2)
-    if len(out.moved):  # the moved matches hide from where they now land
-        uv2, X = uv2.copy(), X.copy()
-        uv2[out.moved], X[out.moved] = out.moved_uv2, out.moved_xyz
-    # hidden in view 2: a nearer surface's match lands where the fill would
+    # hidden in view 2: a nearer surface's match lands where the fill would (the moved
+    # matches where they land now)
+    order = np.argsort(out.moved)
     zbuf = _nearest_depth(np.ascontiguousarray(uv2), np.ascontiguousarray(X), np.ascontiguousarray(tv.R, np.float64),
-                          np.asarray(tv.t, np.float64), *size2)
+                          np.asarray(tv.t, np.float64), *size2, np.ascontiguousarray(out.moved[order], np.int64),
+                          np.ascontiguousarray(out.moved_uv2[order], np.float64),
+                          np.ascontiguousarray(out.moved_xyz[order], np.float64))
     Xa, va, _ = triangulate(tv.K1, tv.K2, tv.R, tv.t, a1, a2)
     za = Xa @ tv.R[2] + tv.t[2]
     keep = va & ~_hidden(np.ascontiguousarray(a2), np.ascontiguousarray(za), zbuf, HIDDEN_DEPTH_SHARE)
