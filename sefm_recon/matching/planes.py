@@ -218,6 +218,8 @@ def _nearest_depth(uv2, X, R, t, w2, h2, skip, uv2_more, X_more):
 
 @njit(cache=True)
 def _add_depths(zbuf, uv2, X, R, t, skip):
+    """Lower ``zbuf`` (h2, w2) to the camera-2 depths of the matches ``uv2``, ``X`` landing in
+    it, in place, but those of the indices ``skip`` (sorted)."""
     h2, w2 = zbuf.shape
     k = 0
     for i in range(uv2.shape[0]):
@@ -506,6 +508,7 @@ def fill_planes(gray1: np.ndarray, size2: tuple[int, int], tv, uv1: np.ndarray, 
     if len(uv1) == 0 or not (fill or snap or drop):
         return empty
     lab, matched = _region_of_matches(np.ascontiguousarray(uv1), labels)
+    pose = _pose(tv)
     quiet = quiet_windows(gray1, SNAP_WINDOW, SNAP_LEVELS) if snap else None
     rng = np.random.default_rng(seed)
     add1, add2, moved, planes, dropped = [], [], [], [], []
@@ -533,7 +536,7 @@ def fill_planes(gray1: np.ndarray, size2: tuple[int, int], tv, uv1: np.ndarray, 
             continue
         if snap:
             own1 = uv1[idx]  # the region's matches in image 1
-            plane, near = _snap_plane(_pose(tv), own1, uv2[idx], X[idx, 2], on_plane)
+            plane, near = _snap_plane(pose, own1, uv2[idx], X[idx, 2], on_plane)
             if plane is not None:
                 near &= quiet[own1[:, 1].astype(np.int64), own1[:, 0].astype(np.int64)]
                 moved.append(idx[near])
