@@ -10,13 +10,13 @@ W, H, F = 240, 180, 300.0
 DISP = 12.0  # a frontal plane at depth F / DISP (unit baseline): x2 = x1 - DISP
 
 
-def _scene(seed=0):
-    """A lateral pair and image 1: a plain grey square framed by texture (its own region)."""
+def _scene(seed=0, plain=np.s_[20:160, 40:220]):
+    """A lateral pair and image 1: a ``plain`` grey rectangle framed by texture (its own region)."""
     K = np.array([[F, 0, W / 2], [0, F, H / 2], [0, 0, 1.0]])
     tv = TwoView(K, K, np.eye(3), np.array([-1.0, 0, 0]))
     rng = np.random.default_rng(seed)
     gray = rng.integers(0, 256, (H, W)).astype(np.uint8)
-    gray[20:160, 40:220] = 128
+    gray[plain] = 128
     return tv, gray
 
 
@@ -214,11 +214,7 @@ def _small_square_scene(seed=5):
     """Image 1 textured all over but for a plain 16 px square (its region, a pixel short of its
     blurred edges: about 100 px, a small one), every pixel of image 1 as (y, x) index pairs,
     and which of them lie on the region (its label, once)."""
-    K = np.array([[F, 0, W / 2], [0, F, H / 2], [0, 0, 1.0]])
-    tv = TwoView(K, K, np.eye(3), np.array([-1.0, 0, 0]))
-    rng = np.random.default_rng(seed)
-    gray = rng.integers(0, 256, (H, W)).astype(np.uint8)
-    gray[80:96, 110:126] = 128
+    tv, gray = _scene(seed, np.s_[80:96, 110:126])
     labels, stats = plain_regions(gray)
     k = labels[88, 118]
     assert k > 0 and 100 <= stats[k, 4] < 0.01 * W * H  # one small region

@@ -193,16 +193,17 @@ def plain_regions(gray: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 @njit(cache=True)
 def _region_of_matches(uv1, labels):
-    """The region label of each match's pixel in image 1 (N,) and the (H, W) mask of matched pixels."""
+    """The region label of each match's pixel in image 1 (N,) and the (H, W) int32 index of the
+    match at each pixel, -1 where none."""
     h, w = labels.shape
     lab = np.empty(uv1.shape[0], np.int32)
-    matched = np.zeros((h, w), np.bool_)
+    index = np.full((h, w), -1, np.int32)
     for i in range(uv1.shape[0]):
         x = int(uv1[i, 0])
         y = int(uv1[i, 1])
         lab[i] = labels[y, x]
-        matched[y, x] = True
-    return lab, matched
+        index[y, x] = i
+    return lab, index
 
 
 @njit(cache=True)
@@ -409,17 +410,8 @@ def _enclosed(on: np.ndarray) -> np.ndarray:
     return (before(on, 1) & before(on[:, ::-1], 1)[:, ::-1] & before(on, 0) & before(on[::-1], 0)[::-1])
 
 
-@njit(cache=True)
-def _match_index(uv1, h, w):
-    """(h, w) int32: the index of the match ``uv1`` (N, 2) at each pixel of image 1, -1 where none."""
-    index = np.full((h, w), -1, np.int32)
-    for i in range(uv1.shape[0]):
-        index[int(uv1[i, 1]), int(uv1[i, 0])] = i
-    return index
-
-
-def _rim_planes(tv, labels: np.ndarray, stats: np.ndarray, uv1: np.ndarray, uv2: np.ndarray, X: np.ndarray,
-                matched: np.ndarray, size2: tuple[int, int], *, fill: bool, snap: bool):
+def _rim_planes(tv, pose: _Pose, labels: np.ndarray, stats: np.ndarray, uv1: np.ndarray, uv2: np.ndarray,
+                X: np.ndarray, index: np.ndarray, size2: tuple[int, int], *, fill: bool, snap: bool):
     """The small plain regions (:data:`MIN_RIM_REGION` px up to :data:`MIN_REGION_SHARE`) on
     the plane of their rim's matches (:func:`_rim_plane`): the unmatched pixels of a region
     enclosed along their row and column by matches on the plane (``fill``; a band along an
@@ -427,10 +419,11 @@ def _rim_planes(tv, labels: np.ndarray, stats: np.ndarray, uv1: np.ndarray, uv2:
     region's own matches within :data:`RIM_SNAP_PX` of it move onto it where they scatter about
     their own plane by over :data:`MIN_RIM_SCATTER` (``snap``).
 
-    ``labels``, ``stats``: :func:`plain_regions`; ``uv1``, ``uv2`` (N, 2), ``X`` (N, 3) the
-    matches; ``matched`` (H, W) bool their pixels of image 1. Returns ``(add1, add2, moved,
-    planes)``: lists of the pixels filled (n, 2) and their partners, of the indices of the
-    matches moved and their planes (m, 3), one entry a region.
+    ``tv`` and ``pose`` (:func:`_pose`) the pair's geometry; ``labels``, ``stats``:
+    :func:`plain_regions`; ``uv1``, ``uv2`` (N, 2), ``X`` (N, 3) the matches; ``index``
+    (H, W) the match at each pixel of image 1 (:func:`_region_of_matches`). Returns
+    ``(add1, add2, moved, planes)``: lists of the pixels filled (n, 2) and their partners, of
+    the indices of the matches moved and their planes (m, 3), one entry a region.
     """
     h, w = labels.shape
     areas = stats[:, cv2.CC_STAT_AREA]
@@ -438,8 +431,6 @@ def _rim_planes(tv, labels: np.ndarray, stats: np.ndarray, uv1: np.ndarray, uv2:
     add1, add2, moved, planes = [], [], [], []
     if len(small) == 0 or not (fill or snap):
         return add1, add2, moved, planes
-    pose = _pose(tv)
-    index = _match_index(np.ascontiguousarray(uv1), h, w)
     kernel = np.ones((2 * RIM_PX + 1, 2 * RIM_PX + 1), np.uint8)
     for k in small:
         x0, y0, bw, bh = stats[k, :4]
@@ -468,7 +459,7 @@ def _rim_planes(tv, labels: np.ndarray, stats: np.ndarray, uv1: np.ndarray, uv2:
         on = np.zeros(region.shape, bool)
         for i in (ring[on_rim], own):
             on[uv1[i, 1].astype(np.int64) - ya, uv1[i, 0].astype(np.int64) - xa] = True
-        ys, xs = np.nonzero(region & ~matched[ya:yb, xa:xb] & _enclosed(on))
+        ys, xs = np.nonzero(region & (crop < 0) & _enclosed(on))
         if len(ys):
             p1 = np.column_stack([xs + xa + 0.5, ys + ya + 0.5])
             p2, _, ok = _on_plane(tv, p1, plane)
@@ -507,7 +498,7 @@ def fill_planes(gray1: np.ndarray, size2: tuple[int, int], tv, uv1: np.ndarray, 
     empty = PlaneFill(none2, none2, none3, 0, np.zeros(0, np.int64), none2, none3, np.zeros(0, np.int64))
     if len(uv1) == 0 or not (fill or snap or drop):
         return empty
-    lab, matched = _region_of_matches(np.ascontiguousarray(uv1), labels)
+    lab, index = _region_of_matches(np.ascontiguousarray(uv1), labels)
     pose = _pose(tv)
     quiet = quiet_windows(gray1, SNAP_WINDOW, SNAP_LEVELS) if snap else None
     rng = np.random.default_rng(seed)
@@ -553,7 +544,7 @@ def fill_planes(gray1: np.ndarray, size2: tuple[int, int], tv, uv1: np.ndarray, 
         on[inl[:, 1] - y0, inl[:, 0] - x0] = 1.0
         win = (HOLE_WINDOW, HOLE_WINDOW)
         dense = cv2.boxFilter(on, -1, win, normalize=False) >= MIN_HOLE_SUPPORT * cv2.boxFilter(region, -1, win, normalize=False)
-        ys, xs = np.nonzero((region > 0) & ~matched[y0:y1, x0:x1] & dense)
+        ys, xs = np.nonzero((region > 0) & (index[y0:y1, x0:x1] < 0) & dense)
         if len(ys) == 0:
             continue
         p1 = np.column_stack([xs + x0 + 0.5, ys + y0 + 0.5])
@@ -562,7 +553,7 @@ def fill_planes(gray1: np.ndarray, size2: tuple[int, int], tv, uv1: np.ndarray, 
         add1.append(p1[inside])
         add2.append(p2[inside])
     if rims:
-        more = _rim_planes(tv, labels, stats, uv1, uv2, X, matched, size2, fill=fill, snap=snap)
+        more = _rim_planes(tv, pose, labels, stats, uv1, uv2, X, index, size2, fill=fill, snap=snap)
         for into, part in zip((add1, add2, moved, planes), more):
             into.extend(part)
     out = empty
