@@ -147,14 +147,17 @@ def _setup_logging(quiet: bool, verbose: bool) -> None:
             logging.getLogger(name).setLevel(logging.WARNING)
 
 
-def _say_if_compiling(method: str, mesh: str = "none") -> None:
+def _say_if_compiling(method: str, mesh: str = "none", fusion: bool = False) -> None:
     """One line before a first run compiles the numba kernels, which it otherwise does in silence."""
     from .io.kernel_cache import cold_kernels, kernel_sources
 
     # the semi-global matcher (OpenCV) uses no kernel of matching/; the sequential DP is mostly kernels there;
-    # the mesh's kernels run only for the grid mesh
+    # the mesh's kernels run only for the grid mesh, the fusion's only for a workspace's pairs
+    skip = {"mesh.py"} if mesh != "grid" else set()
+    if not fusion:
+        skip.add("fuse.py")
     sources = [s for s in kernel_sources() if (method != "sgm" or s.parent.name != "matching")
-               and (mesh == "grid" or s.parent.name != "reconstruct" or s.name != "mesh.py")]
+               and (s.parent.name != "reconstruct" or s.name not in skip)]
     cold = cold_kernels(sources)
     if cold:
         dp = any(s.parent.name == "matching" for s in cold)
@@ -184,7 +187,7 @@ def _cmd_colmap(args) -> int:
     from .config import load_config
 
     cfg = load_config(args.config, args.overrides)
-    _say_if_compiling(cfg.dense.method)
+    _say_if_compiling(cfg.dense.method, fusion=True)
     report = run_colmap(args.workspace, args.output, cfg, pairs_file=args.pairs, image_dir=args.image_dir,
                         sparse_dir=args.sparse_dir, overwrite=args.overwrite, workers=args.workers,
                         scheduler=args.scheduler, progress=not args.quiet and cfg.output.progress)

@@ -2,10 +2,9 @@
 
 import numpy as np
 
-from sefm_recon.geometry import kernels as gk
 from sefm_recon.geometry.epipolar import line_alphas, ray_angles, sample_line_channels
-from sefm_recon.geometry.kernels import _first_above, _first_at_least, _gallop
-from sefm_recon.geometry.triangulate import project
+from sefm_recon.geometry.triangulate import points_at_distance, project
+from sefm_recon.matching.band import _first_above, _first_at_least, _gallop
 
 from .conftest import LINE_K as K
 from .conftest import LINE_SIZE as SIZE
@@ -50,7 +49,7 @@ def test_points_at_distance_lie_on_the_ray_and_project_to_the_epipolar_line():
     rng = np.random.default_rng(0)
     uv1 = rng.uniform([0, 0], [640, 480], (50, 2))
     dist = rng.uniform(2, 10, 50)
-    X, uv2 = gk.points_at_distance(np.linalg.inv(K1), K2, R, t, uv1, dist)
+    X, uv2 = points_at_distance(np.linalg.inv(K1), K2, R, t, uv1, dist)
     np.testing.assert_allclose(np.linalg.norm(X, axis=1), dist)
     np.testing.assert_allclose(project(K1, np.eye(3), np.zeros(3), X), uv1, atol=1e-9)
     np.testing.assert_allclose(project(K2, R, t, X), uv2, atol=1e-9)

@@ -18,6 +18,7 @@ import logging
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit, prange
 
 logger = logging.getLogger(__name__)
 
@@ -101,10 +102,9 @@ def ray_angles(K: np.ndarray, Rc: np.ndarray, basis: np.ndarray, xy: np.ndarray)
     ``Rc`` rotates the camera's axes into camera 1's (identity for camera 1,
     ``R.T`` for camera 2).
     """
-    from .kernels import ray_angles as kernel
 
     Minv = np.ascontiguousarray(Rc @ np.linalg.inv(K))
-    return kernel(Minv, np.ascontiguousarray(basis, np.float64), np.ascontiguousarray(xy, np.float64).reshape(-1, 2))
+    return _ray_angles(Minv, np.ascontiguousarray(basis, np.float64), np.ascontiguousarray(xy, np.float64).reshape(-1, 2))
 
 
 def _border(width: int, height: int, n: int = 64) -> np.ndarray:
@@ -297,11 +297,10 @@ def line_alphas(lp: LinePairs, K: np.ndarray, Rc: np.ndarray, which: int) -> np.
     ``Rc`` rotates the camera's axes into camera 1's (identity for camera 1,
     ``R.T`` for camera 2).
     """
-    from .kernels import line_alphas as kernel
 
     start, step, off = lp.side(which)
     Minv = np.ascontiguousarray(Rc @ np.linalg.inv(K))
-    return kernel(start, step, off, Minv, np.ascontiguousarray(lp.basis, np.float64))
+    return _line_alphas(start, step, off, Minv, np.ascontiguousarray(lp.basis, np.float64))
 
 
 def sample_line_channels(image: np.ndarray, lp: LinePairs, K: np.ndarray, Rc: np.ndarray, which: int,
@@ -321,7 +320,6 @@ def sample_line_channels(image: np.ndarray, lp: LinePairs, K: np.ndarray, Rc: np
     Returns:
         (N, (2 neighbours + 1) C) float32, neighbour-major then channel.
     """
-    from .kernels import sample_line_channels as kernel
 
     start, step, off = lp.side(which)
     img = np.ascontiguousarray(image, np.float32)
@@ -330,7 +328,7 @@ def sample_line_channels(image: np.ndarray, lp: LinePairs, K: np.ndarray, Rc: np
     offsets = np.arange(-neighbours, neighbours + 1) * neighbour_step * lp.phi_step
     Minv = np.ascontiguousarray(Rc @ np.linalg.inv(K))  # homogeneous pixel -> camera-1-axes ray
     M = np.ascontiguousarray(K @ Rc.T)  # and back
-    return kernel(img, start, step, off, np.ascontiguousarray(lp.phi, np.float64), offsets.astype(np.float64),
+    return _sample_line_channels(img, start, step, off, np.ascontiguousarray(lp.phi, np.float64), offsets.astype(np.float64),
                   np.ascontiguousarray(lp.basis, np.float64), Minv, M)
 
 
@@ -340,7 +338,6 @@ def sample_lines(image: np.ndarray, start: np.ndarray, step: np.ndarray, count: 
     Args:
         image: (H, W) or (H, W, C), any dtype; sampled as float32.
     """
-    from .kernels import sample_line_channels as kernel
 
     img = np.ascontiguousarray(image, np.float32)
     if img.ndim == 2:
@@ -348,6 +345,158 @@ def sample_lines(image: np.ndarray, start: np.ndarray, step: np.ndarray, count: 
     count = np.asarray(count, np.int64).reshape(-1)
     off = np.concatenate([[0], np.cumsum(count)]).astype(np.int64)
     L = len(count)
-    return kernel(img, np.ascontiguousarray(start, np.float64).reshape(L, 2),
+    return _sample_line_channels(img, np.ascontiguousarray(start, np.float64).reshape(L, 2),
                   np.ascontiguousarray(step, np.float64).reshape(L, 2), off, np.zeros(L), np.zeros(1),
                   np.eye(3), np.eye(3), np.eye(3))
+
+
+# ------------------------------------------------------------------ numba kernels
+#
+# Sample ``k`` of line ``l`` lies at ``start[l] + k * step[l]`` (COLMAP pixels); line ``l``'s
+# samples are stored flat at ``off[l]:off[l + 1]``. Lines are independent, so every line
+# kernel runs ``prange`` over lines and writes only its own slice; the point kernels run
+# ``prange`` over points.
+
+
+@njit(cache=True)
+def pixel_ray(Minv, x, y):
+    """Ray ``Minv @ (x, y, 1)`` of a pixel, unnormalised (camera-1 axes when ``Minv = Rc K^-1``)."""
+    r0 = Minv[0, 0] * x + Minv[0, 1] * y + Minv[0, 2]
+    r1 = Minv[1, 0] * x + Minv[1, 1] * y + Minv[1, 2]
+    r2 = Minv[2, 0] * x + Minv[2, 1] * y + Minv[2, 2]
+    return r0, r1, r2
+
+
+@njit(parallel=True, cache=True)
+def _ray_angles(Minv, basis, xy):
+    """(phi, alpha) of pixel rays, (N,) float64 each, radians; see :func:`sefm_recon.geometry.epipolar.ray_angles`.
+
+    ``Minv`` (3, 3) maps homogeneous pixels to rays in camera-1 axes (``Rc K^-1``);
+    ``basis`` rows are ``(b, e_a, e_b)``; ``xy`` (N, 2) COLMAP pixels.
+    """
+    n = xy.shape[0]
+    phi = np.empty(n)
+    alpha = np.empty(n)
+    for k in prange(n):
+        r0, r1, r2 = pixel_ray(Minv, xy[k, 0], xy[k, 1])
+        rb = r0 * basis[0, 0] + r1 * basis[0, 1] + r2 * basis[0, 2]
+        ra = r0 * basis[1, 0] + r1 * basis[1, 1] + r2 * basis[1, 2]
+        re = r0 * basis[2, 0] + r1 * basis[2, 1] + r2 * basis[2, 2]
+        phi[k] = np.arctan2(re, ra)
+        alpha[k] = np.arctan2(np.sqrt(ra * ra + re * re), rb)
+    return phi, alpha
+
+
+@njit(parallel=True, cache=True)
+def _line_alphas(start, step, off, Minv, basis):
+    """Angle from the baseline of every sample's viewing ray, (N,) float64.
+
+    ``Minv`` (3, 3) maps homogeneous pixels to rays in camera-1 axes (``Rc K^-1``);
+    ``basis`` rows are ``(b, e_a, e_b)``.
+    """
+    L = off.shape[0] - 1
+    alpha = np.empty(off[L])
+    for ll in prange(L):
+        l = np.int64(ll)
+        for k in range(off[l + 1] - off[l]):
+            r0, r1, r2 = pixel_ray(Minv, start[l, 0] + k * step[l, 0], start[l, 1] + k * step[l, 1])
+            rb = r0 * basis[0, 0] + r1 * basis[0, 1] + r2 * basis[0, 2]
+            ra = r0 * basis[1, 0] + r1 * basis[1, 1] + r2 * basis[1, 2]
+            re = r0 * basis[2, 0] + r1 * basis[2, 1] + r2 * basis[2, 2]
+            alpha[off[l] + k] = np.arctan2(np.sqrt(ra * ra + re * re), rb)
+    return alpha
+
+
+@njit(cache=True, inline="always")
+def bilinear(img, x, y, c):
+    """Bilinear sample of channel ``c`` of img (H, W, C) at COLMAP position (x, y), border replicated."""
+    H, W = img.shape[0], img.shape[1]
+    px = x - 0.5
+    py = y - 0.5
+    fx0 = np.floor(px)
+    fy0 = np.floor(py)
+    x0 = int(fx0)
+    y0 = int(fy0)
+    fx = px - fx0
+    fy = py - fy0
+    if x0 >= 0 and y0 >= 0 and x0 < W - 1 and y0 < H - 1:  # inside: no clamping (most samples)
+        xa, xb, ya, yb = x0, x0 + 1, y0, y0 + 1
+    else:
+        xa = min(max(x0, 0), W - 1)
+        xb = min(max(x0 + 1, 0), W - 1)
+        ya = min(max(y0, 0), H - 1)
+        yb = min(max(y0 + 1, 0), H - 1)
+    # In float64, so that integer images do not wrap in the differences.
+    a = np.float64(img[ya, xa, c])
+    b = np.float64(img[yb, xa, c])
+    top = a + fx * (np.float64(img[ya, xb, c]) - a)
+    bot = b + fx * (np.float64(img[yb, xb, c]) - b)
+    return top + fy * (bot - top)
+
+
+@njit(parallel=True, cache=True)
+def _sample_line_channels(img, start, step, off, phi, offsets, basis, Minv, M):
+    """Bilinear samples of each line and of its neighbour lines at the same ray angles.
+
+    Sample ``k`` of line ``l`` is the ray ``(phi[l], alpha_k)``; its neighbour
+    ``o`` is the ray ``(phi[l] + offsets[o], alpha_k)``: the same components along
+    and normal to the baseline ``b``, the normal one turned about ``b``.
+    ``Minv`` (``Rc K^-1``) maps pixels to rays in camera-1 axes, ``M``
+    (``K Rc^T``) back. An offset of 0 is the line itself; a neighbour ray behind
+    the camera takes the line's own position.
+
+    Args:
+        img: (H, W, C) float32.
+        offsets: (O,) half-plane angle offsets, radians.
+    Returns:
+        (N, O * C) float32, neighbour-major then channel.
+    """
+    L = off.shape[0] - 1
+    C = img.shape[2]
+    O = offsets.shape[0]
+    out = np.empty((off[L], O * C), np.float32)
+    for ll in prange(L):
+        l = np.int64(ll)
+        base = off[l]
+        n = off[l + 1] - base
+        # The ray of sample k is r_a + k r_s; its components along b (rb) and
+        # along the line's half-plane normal (rp) are linear in k too, so each
+        # neighbour's ray rb b + rp m_o, and its pixel, is a projective map
+        # of k: six numbers per neighbour instead of a ray per sample.
+        ra0, ra1, ra2 = pixel_ray(Minv, start[l, 0], start[l, 1])
+        re0, re1, re2 = pixel_ray(Minv, start[l, 0] + step[l, 0], start[l, 1] + step[l, 1])
+        rs0, rs1, rs2 = re0 - ra0, re1 - ra1, re2 - ra2
+        cp = np.cos(phi[l])
+        sp = np.sin(phi[l])
+        m0 = cp * basis[1, 0] + sp * basis[2, 0]
+        m1 = cp * basis[1, 1] + sp * basis[2, 1]
+        m2 = cp * basis[1, 2] + sp * basis[2, 2]
+        rb_a = ra0 * basis[0, 0] + ra1 * basis[0, 1] + ra2 * basis[0, 2]
+        rb_s = rs0 * basis[0, 0] + rs1 * basis[0, 1] + rs2 * basis[0, 2]
+        rp_a = ra0 * m0 + ra1 * m1 + ra2 * m2
+        rp_s = rs0 * m0 + rs1 * m1 + rs2 * m2
+        proj = np.empty((O, 6))  # x, y and z of M d, at k = 0 and per unit k
+        for o in range(O):
+            co = np.cos(phi[l] + offsets[o])
+            so = np.sin(phi[l] + offsets[o])
+            for i in range(3):
+                da = 0.0
+                ds = 0.0
+                for j in range(3):
+                    mo = co * basis[1, j] + so * basis[2, j]
+                    da += M[i, j] * (rb_a * basis[0, j] + rp_a * mo)
+                    ds += M[i, j] * (rb_s * basis[0, j] + rp_s * mo)
+                proj[o, i] = da
+                proj[o, 3 + i] = ds
+        for k in range(n):
+            x0 = start[l, 0] + k * step[l, 0]
+            y0 = start[l, 1] + k * step[l, 1]
+            for o in range(O):
+                z = proj[o, 2] + k * proj[o, 5]
+                x, y = x0, y0  # a neighbour ray behind the camera takes the line's own pixel
+                if offsets[o] != 0.0 and z > 0:
+                    x = (proj[o, 0] + k * proj[o, 3]) / z
+                    y = (proj[o, 1] + k * proj[o, 4]) / z
+                for c in range(C):
+                    out[base + k, o * C + c] = bilinear(img, x, y, c)
+    return out

@@ -18,6 +18,7 @@ from dataclasses import dataclass, replace
 import cv2
 import numpy as np
 import pycolmap
+from numba import njit
 
 from .two_view import TwoView, epipolar_distances, rotation_translation
 
@@ -54,11 +55,10 @@ def grid_subset(uv1: np.ndarray, score: np.ndarray, size: tuple[int, int]) -> np
     """Indices of the most confident match in each cell of a grid over image 1 (``size`` = (w, h))."""
     if len(uv1) == 0:
         return np.zeros(0, np.int64)
-    from .kernels import best_per_cell
 
     cell = max(float(np.sqrt(size[0] * size[1] / GRID_CELLS)), MIN_CELL_PX)
     nx, ny = int(size[0] // cell) + 1, int(size[1] // cell) + 1
-    return best_per_cell(np.ascontiguousarray(uv1, np.float64), np.ascontiguousarray(score, np.float64), cell, nx, ny)
+    return _best_per_cell(np.ascontiguousarray(uv1, np.float64), np.ascontiguousarray(score, np.float64), cell, nx, ny)
 
 
 #: Scale (px, Gaussian sigma) of the local brightness normalisation before tracking:
@@ -156,3 +156,18 @@ def pose_change_deg(a: TwoView, b: TwoView) -> tuple[float, float]:
     rot = float(np.degrees(np.arccos(np.clip((np.trace(dR) - 1) / 2, -1, 1))))
     tr = float(np.degrees(np.arccos(np.clip(a.t @ b.t / max(np.linalg.norm(a.t) * np.linalg.norm(b.t), 1e-12), -1, 1))))
     return rot, tr
+
+
+@njit(cache=True)
+def _best_per_cell(uv, score, cell, nx, ny):
+    """Index of the highest ``score`` (the first of ties) in each occupied ``cell``-px square of an
+    ``nx`` x ``ny`` grid over ``uv`` (N, 2); (M,) int64, cells in x-major order. One pass: a sort
+    of millions of dense matches took 0.19 s of the bench pair's."""
+    best = np.full(nx * ny, -1, np.int64)
+    for i in range(uv.shape[0]):
+        kx = min(max(int(np.floor(uv[i, 0] / cell)), 0), nx - 1)
+        ky = min(max(int(np.floor(uv[i, 1] / cell)), 0), ny - 1)
+        c = kx * ny + ky
+        if best[c] < 0 or score[i] > score[best[c]]:
+            best[c] = i
+    return best[best >= 0]

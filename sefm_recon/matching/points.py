@@ -15,7 +15,7 @@ import numpy as np
 from numba import njit, prange
 
 from ..geometry.epipolar import LinePairs
-from ..geometry.kernels import points_at_distance, ray_midpoint
+from ..geometry.triangulate import points_at_distance, ray_midpoint
 from ..geometry.two_view import TwoView
 
 

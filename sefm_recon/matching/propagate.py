@@ -17,9 +17,8 @@ from numba import njit, prange
 
 from ..config import Config
 from ..geometry.epipolar import LinePairs
-from ..geometry.kernels import sample_band
 from ..geometry.two_view import TwoView
-from .band import depth_grids, widen
+from .band import depth_grids, sample_band, widen
 from .points import points_of_samples
 from .validity import ValidatedPoints
 from .zncc import zncc_search
@@ -60,7 +59,7 @@ def propagate_candidates(I1, off1, I2, off2, j, cand, cand_off, start1, step1, a
     ``gmin``/``gmax`` (H, W) of the pixels within ``opts.radius`` of its pixel
     (inf where none; reading it here costs less than widening the grids
     for the few samples tried); its line-2 band
-    (:func:`sefm_recon.geometry.kernels.sample_band` of the ray angles ``a1``
+    (:func:`.band.sample_band` of the ray angles ``a1``
     (N1,), ``a2`` (N2,) and the ``baseline``, ``opts.slack`` samples wider)
     at most ``opts.max_width`` samples wide is searched by ZNCC as in
     :func:`.fill.fill_from_band`. Only samples on pixels where ``active`` (H, W)

@@ -36,7 +36,7 @@ from ..arrays import append_rows, quiet_windows
 from ..config import Config
 from ..errors import InputError
 from ..geometry.epipolar import ray_angles
-from ..geometry.kernels import pixel_ray
+from ..geometry.epipolar import pixel_ray
 from ..geometry.two_view import TwoView
 from ..io.images import to_gray
 from .lines import LineGrid, line_grid, line_images, pixel_grid, project_polar

@@ -9,6 +9,9 @@ from __future__ import annotations
 import logging
 
 import numpy as np
+from numba import njit, prange
+
+from ..geometry.epipolar import bilinear
 
 log = logging.getLogger(__name__)
 
@@ -142,9 +145,7 @@ def sample_colors(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
     if img.ndim not in (2, 3):
         raise ValueError(f"image must be (H, W) or (H, W, C), got {img.shape}")
     uv = np.ascontiguousarray(uv, dtype=np.float64).reshape(-1, 2)
-    from .kernels import bilinear_sample
-
-    out = bilinear_sample(img if img.ndim == 3 else img[:, :, None], uv)
+    out = _bilinear_sample(img if img.ndim == 3 else img[:, :, None], uv)
     out[np.isnan(out)] = 0  # non-finite positions
     if img.ndim == 2:
         out = out[:, 0]
@@ -174,6 +175,92 @@ def grid_normals(uv: np.ndarray, xyz: np.ndarray, shape: tuple[int, int], step: 
     h, w = int(shape[0]), int(shape[1])
     r = np.clip(np.floor(uv[:, 1]).astype(np.int64), 0, h - 1)
     c = np.clip(np.floor(uv[:, 0]).astype(np.int64), 0, w - 1)
-    from .kernels import grid_normals as kernel
+    return _grid_normals(xyz, r, c, h, w, int(step))
 
-    return kernel(xyz, r, c, h, w, int(step))
+
+# ------------------------------------------------------------------ numba kernels
+
+
+@njit(cache=True)
+def _neighbour(index, r, c, h, w):
+    if r < 0 or r >= h or c < 0 or c >= w:
+        return -1
+    return index[r, c]
+
+
+@njit(parallel=True, cache=True)
+def _grid_normals(xyz, r, c, h, w, step):
+    """Unit normals (N, 3) from the grid neighbours' 3-D differences; see :func:`grid_normals`."""
+    n = xyz.shape[0]
+    index = np.full((h, w), -1, np.int64)
+    for k in range(n):
+        index[r[k], c[k]] = k  # one point per pixel (the last wins)
+    out = np.empty((n, 3))
+    for kk in prange(n):
+        k = np.int64(kk)  # prange's index may be unsigned; keep index arithmetic in int64
+        # along x (columns)
+        kf = _neighbour(index, r[k], c[k] + step, h, w)
+        kb = _neighbour(index, r[k], c[k] - step, h, w)
+        if kf < 0:
+            kf = k
+        if kb < 0:
+            kb = k
+        ax = xyz[kf, 0] - xyz[kb, 0]
+        ay = xyz[kf, 1] - xyz[kb, 1]
+        az = xyz[kf, 2] - xyz[kb, 2]
+        # along y (rows)
+        kf = _neighbour(index, r[k] + step, c[k], h, w)
+        kb = _neighbour(index, r[k] - step, c[k], h, w)
+        if kf < 0:
+            kf = k
+        if kb < 0:
+            kb = k
+        bx = xyz[kf, 0] - xyz[kb, 0]
+        by = xyz[kf, 1] - xyz[kb, 1]
+        bz = xyz[kf, 2] - xyz[kb, 2]
+        nx = ay * bz - az * by
+        ny = az * bx - ax * bz
+        nz = ax * by - ay * bx
+        norm = np.sqrt(nx * nx + ny * ny + nz * nz)
+        pn = np.sqrt(xyz[k, 0] ** 2 + xyz[k, 1] ** 2 + xyz[k, 2] ** 2) + 1e-12
+        vx = -xyz[k, 0] / pn
+        vy = -xyz[k, 1] / pn
+        vz = -xyz[k, 2] / pn
+        if norm > 0.0:
+            nx /= norm
+            ny /= norm
+            nz /= norm
+            if nx * vx + ny * vy + nz * vz < 0.0:
+                nx = -nx
+                ny = -ny
+                nz = -nz
+        else:
+            nx = vx
+            ny = vy
+            nz = vz
+        out[k, 0] = nx
+        out[k, 1] = ny
+        out[k, 2] = nz
+    return out
+
+
+@njit(parallel=True, cache=True)
+def _bilinear_sample(img, uv):
+    """Bilinear samples (N, C) float32 of ``img`` (H, W, C) at COLMAP positions ``uv`` (N, 2).
+
+    Border replicated (:func:`sefm_recon.geometry.epipolar.bilinear`, the line
+    sampler's; the same values as :func:`bilinear_corners`
+    gives); NaN where ``uv`` is not finite.
+    """
+    C = img.shape[2]
+    n = uv.shape[0]
+    out = np.empty((n, C), np.float32)
+    for kk in prange(n):
+        k = np.int64(kk)
+        if np.isfinite(uv[k, 0]) and np.isfinite(uv[k, 1]):
+            for ch in range(C):
+                out[k, ch] = bilinear(img, uv[k, 0], uv[k, 1], ch)
+        else:
+            for ch in range(C):
+                out[k, ch] = np.nan
+    return out
