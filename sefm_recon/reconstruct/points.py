@@ -188,6 +188,19 @@ def _neighbour(index, r, c, h, w):
     return index[r, c]
 
 
+@njit(cache=True)
+def _difference(xyz, index, k, r, c, dr, dc, h, w):
+    """``X`` of the point ``(dr, dc)`` pixels beyond point ``k`` (at ``r``, ``c``) less that of the
+    point as far before it; the point itself stands in for a missing neighbour."""
+    kf = _neighbour(index, r + dr, c + dc, h, w)
+    kb = _neighbour(index, r - dr, c - dc, h, w)
+    if kf < 0:
+        kf = k
+    if kb < 0:
+        kb = k
+    return xyz[kf, 0] - xyz[kb, 0], xyz[kf, 1] - xyz[kb, 1], xyz[kf, 2] - xyz[kb, 2]
+
+
 @njit(parallel=True, cache=True)
 def _grid_normals(xyz, r, c, h, w, step):
     """Unit normals (N, 3) from the grid neighbours' 3-D differences; see :func:`grid_normals`."""
@@ -198,26 +211,8 @@ def _grid_normals(xyz, r, c, h, w, step):
     out = np.empty((n, 3))
     for kk in prange(n):
         k = np.int64(kk)  # prange's index may be unsigned; keep index arithmetic in int64
-        # along x (columns)
-        kf = _neighbour(index, r[k], c[k] + step, h, w)
-        kb = _neighbour(index, r[k], c[k] - step, h, w)
-        if kf < 0:
-            kf = k
-        if kb < 0:
-            kb = k
-        ax = xyz[kf, 0] - xyz[kb, 0]
-        ay = xyz[kf, 1] - xyz[kb, 1]
-        az = xyz[kf, 2] - xyz[kb, 2]
-        # along y (rows)
-        kf = _neighbour(index, r[k] + step, c[k], h, w)
-        kb = _neighbour(index, r[k] - step, c[k], h, w)
-        if kf < 0:
-            kf = k
-        if kb < 0:
-            kb = k
-        bx = xyz[kf, 0] - xyz[kb, 0]
-        by = xyz[kf, 1] - xyz[kb, 1]
-        bz = xyz[kf, 2] - xyz[kb, 2]
+        ax, ay, az = _difference(xyz, index, k, r[k], c[k], 0, step, h, w)  # along x (columns)
+        bx, by, bz = _difference(xyz, index, k, r[k], c[k], step, 0, h, w)  # along y (rows)
         nx = ay * bz - az * by
         ny = az * bx - ax * bz
         nz = ax * by - ay * bx
