@@ -252,6 +252,7 @@ class SgmConfig:
     uniqueness: int = 10  #: best cost this many percent below the second best (0 = off)
     jump_penalty: int = 0  #: SGM's P2 in units of channels x block area (0: chosen per pair, sgm.choose_jump_penalty)
     speckle: bool = True  #: drop small islands of disparity (OpenCV's speckle filter)
+    speckle_share: bool = True  #: the speckle filter's window a share of the view (false: OpenCV's 100 px alone)
     sift_range: bool = True  #: search the SIFT inliers' parallax (false: their depths x2 and /2)
     range_margin: float = 0.0  #: the parallax range widened by this share of its span on each side (0: 8 columns)
     end_check: bool = True  #: drop estimates within a column of the ends of the search (its edge, not a minimum found)

@@ -57,6 +57,7 @@ SGM_ABLATIONS: dict[str, list[str]] = {
     "- uniqueness test": ["sgm.uniqueness=0"],
     "- jump penalty chosen per pair (OpenCV's 32)": ["sgm.jump_penalty=32"],
     "- speckle filter": ["sgm.speckle=false"],
+    "- speckle window a share of the view (100 px alone)": ["sgm.speckle_share=false"],
     "- search range from the SIFT parallax (their depths x2 and /2)": ["sgm.sift_range=false"],
     "+ range margin of a quarter span (8 columns alone)": ["sgm.range_margin=0.25"],
     "- range extended towards the camera by a coarse pass": ["sgm.near_range=false"],

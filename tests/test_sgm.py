@@ -1,5 +1,6 @@
 """Polar line images (matching/lines.py) and semi-global matching over them (matching/sgm.py)."""
 
+import cv2
 import numpy as np
 import pytest
 
@@ -663,6 +664,36 @@ def test_the_plain_cells_dropped_beside_an_occlusion_are_wrong_far_more_often():
     ij_kept = np.array(sorted(kept))
     strip[ij_kept[:, 1], ij_kept[:, 0]] = True
     assert strip[60:180, 130:150].mean() < 0.5
+
+
+def _island(side: int):
+    """Line images 400 x 700 of one texture at 20 columns of parallax, with a ``side`` x ``side``
+    patch in front at 40; the patch's interior (2 px in from its edges)."""
+    rng = np.random.default_rng(0)
+    texture = cv2.GaussianBlur((rng.random((400, 764, 3)) * 255).astype(np.uint8), (3, 3), 0.7)
+    L1 = np.ascontiguousarray(texture[:, :700])
+    L2 = np.ascontiguousarray(texture[:, 20:720])  # x2 = x1 - 20
+    L2[150:150 + side, 260:260 + side] = L1[150:150 + side, 300:300 + side]  # x2 = x1 - 40
+    return L1, L2, (slice(152, 148 + side), slice(302, 298 + side))
+
+
+def test_the_speckle_filter_drops_islands_under_a_share_of_the_view(monkeypatch):
+    # SGM finds a 30 px patch in front as an island of 320 cells and a 48 px one as 1395
+    # (its edges fatten into the background or drop). The window over 254,400 estimated cells
+    # is 508: the first is dropped, the second kept; the 100 cells alone keep both.
+    from sefm_recon.matching import sgm
+
+    assert sgm.speckle_window(400, 700, 64) == 508 and sgm.speckle_window(100, 164, 64) == sgm.SPECKLE_WINDOW
+    for side, kept in ((30, False), (48, True)):
+        L1, L2, patch = _island(side)
+        d, _ = sgm._sgbm(L1, L2, 0, 64, 10)
+        assert np.mean(np.abs(d[50:120, 100:600] - 20) < 1) > 0.99  # the background stays
+        found = np.mean(np.abs(d[patch] - 40) < 1)
+        assert found > 0.5 if kept else found < 0.05
+    monkeypatch.setattr(sgm, "SPECKLE_SHARE", 0.0)
+    L1, L2, patch = _island(30)
+    d, _ = sgm._sgbm(L1, L2, 0, 64, 10)
+    assert np.mean(np.abs(d[patch] - 40) < 1) > 0.3
 
 
 @pytest.mark.parametrize("bad_rows, within_px", [(slice(119, 122), 1.0), (slice(117, 124), 3.0)])
