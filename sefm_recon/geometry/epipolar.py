@@ -104,7 +104,8 @@ def ray_angles(K: np.ndarray, Rc: np.ndarray, basis: np.ndarray, xy: np.ndarray)
     """
 
     Minv = np.ascontiguousarray(Rc @ np.linalg.inv(K))
-    return _ray_angles(Minv, np.ascontiguousarray(basis, np.float64), np.ascontiguousarray(xy, np.float64).reshape(-1, 2))
+    return _ray_angles(Minv, np.ascontiguousarray(basis, np.float64),
+                       np.ascontiguousarray(xy, np.float64).reshape(-1, 2))
 
 
 def _border(width: int, height: int, n: int = 64) -> np.ndarray:
@@ -328,8 +329,8 @@ def sample_line_channels(image: np.ndarray, lp: LinePairs, K: np.ndarray, Rc: np
     offsets = np.arange(-neighbours, neighbours + 1) * neighbour_step * lp.phi_step
     Minv = np.ascontiguousarray(Rc @ np.linalg.inv(K))  # homogeneous pixel -> camera-1-axes ray
     M = np.ascontiguousarray(K @ Rc.T)  # and back
-    return _sample_line_channels(img, start, step, off, np.ascontiguousarray(lp.phi, np.float64), offsets.astype(np.float64),
-                  np.ascontiguousarray(lp.basis, np.float64), Minv, M)
+    return _sample_line_channels(img, start, step, off, np.ascontiguousarray(lp.phi, np.float64),
+                                 offsets.astype(np.float64), np.ascontiguousarray(lp.basis, np.float64), Minv, M)
 
 
 def sample_lines(image: np.ndarray, start: np.ndarray, step: np.ndarray, count: np.ndarray) -> np.ndarray:
@@ -346,8 +347,8 @@ def sample_lines(image: np.ndarray, start: np.ndarray, step: np.ndarray, count: 
     off = np.concatenate([[0], np.cumsum(count)]).astype(np.int64)
     L = len(count)
     return _sample_line_channels(img, np.ascontiguousarray(start, np.float64).reshape(L, 2),
-                  np.ascontiguousarray(step, np.float64).reshape(L, 2), off, np.zeros(L), np.zeros(1),
-                  np.eye(3), np.eye(3), np.eye(3))
+                                 np.ascontiguousarray(step, np.float64).reshape(L, 2), off, np.zeros(L), np.zeros(1),
+                                 np.eye(3), np.eye(3), np.eye(3))
 
 
 # ------------------------------------------------------------------ numba kernels

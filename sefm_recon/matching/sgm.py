@@ -57,10 +57,11 @@ __all__ = ["choose_jump_penalty", "coarse_parallax", "coarse_range", "CoarsePara
 #: StereoSGBM's settings, those of the evaluation's planar SGBM peer: 5x5 blocks, OpenCV's
 #: recommended smoothness penalties P1 = 8 C B^2 and P2 = 32 C B^2 (C channels; the
 #: multiples of C B^2 below), a speckle filter over windows of at least 100 px within 2
-#: disparities (:data:`SPECKLE_SHARE`), and a left-right check within 1 disparity (:data:`LR_MAX_DIFF`: OpenCV's own check,
-#: ``disp12MaxDiff``, changes no pixel in this build; ours is :func:`drop_left_right`); the
-#: uniqueness margin and the switches of the ablation are in ``cfg.sgm``. (3x3 blocks gained
-#: 0.005-0.01 on the real pairs but lost 0.02-0.09 on the noisier generated scenes.)
+#: disparities (:data:`SPECKLE_SHARE`), and a left-right check within 1 disparity
+#: (:data:`LR_MAX_DIFF`: OpenCV's own check, ``disp12MaxDiff``, changes no pixel in this
+#: build; ours is :func:`drop_left_right`); the uniqueness margin and the switches of the
+#: ablation are in ``cfg.sgm``. (3x3 blocks gained 0.005-0.01 on the real pairs but lost
+#: 0.02-0.09 on the noisier generated scenes.)
 BLOCK = 5
 SPECKLE_WINDOW = 100
 SPECKLE_RANGE = 2
@@ -73,9 +74,10 @@ LR_MAX_DIFF = 1
 #: of a 1000x750 view. Against them (true pose, p@1 / p@3 / cov@1): generated 0.927 / 0.980 /
 #: 0.706 -> 0.935 / 0.985 / 0.702, every seed more precise (the zoom seeds 11 and 15 from 0.953
 #: and 0.959 to 0.976 and 0.974 at 3 px); real 0.953 / 0.974 / 0.885 -> 0.954 / 0.975 / 0.883
-#: (Midd1's plain wall, matched in small patches, -0.01 to -0.02 of coverage). At 1/1000 (windows
-#: over the whole width): generated 0.933 / 0.985 / 0.703, real 0.953 / 0.975 / 0.884, most of
-#: the precision for half the coverage; 1/500 is kept for the gross errors at 3 px, the goal missed most.
+#: (Midd1's plain wall, matched in small patches, -0.01 to -0.02 of coverage). At 1/1000
+#: (windows over the whole width): generated 0.933 / 0.985 / 0.703, real 0.953 / 0.975 / 0.884,
+#: most of the precision for half the coverage; 1/500 is kept for the gross errors at 3 px, the
+#: goal missed most.
 #: A fixed window sized for 1000x750 views is too large for the real pairs' third-size views
 #: (1600 px: Midd1 conv 0.679 -> 0.517 of coverage).
 SPECKLE_SHARE = 0.002
@@ -1267,10 +1269,11 @@ def _sgbm(L1: np.ndarray, L2: np.ndarray, min_d: int, num_d: int, uniqueness: in
     ``min_d``) and whether the four full paths ran (where the cost volume fits :data:`MAX_FULL_VOLUME`)."""
     cn = L1.shape[2] if L1.ndim == 3 else 1
     full = full_paths and _volume_fits(L1, num_d)
+    window = speckle_window(*L1.shape[:2], num_d, speckle_share) if speckle else 0
     sgbm = cv2.StereoSGBM_create(minDisparity=0, numDisparities=num_d, blockSize=BLOCK,
                                  P1=STEP_PENALTY * cn * BLOCK**2, P2=jump * cn * BLOCK**2,
                                  disp12MaxDiff=LR_MAX_DIFF, uniquenessRatio=uniqueness,
-                                 speckleWindowSize=speckle_window(*L1.shape[:2], num_d, speckle_share) if speckle else 0,
+                                 speckleWindowSize=window,
                                  speckleRange=SPECKLE_RANGE,
                                  mode=cv2.STEREO_SGBM_MODE_HH4 if full else cv2.STEREO_SGBM_MODE_SGBM_3WAY)
     # fixed point, 4 fractional bits; invalid: -1 (below min_d once shifted); one float copy
