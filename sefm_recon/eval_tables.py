@@ -74,6 +74,7 @@ SGM_ABLATIONS: dict[str, list[str]] = {
     "- bicubic line images (bilinear)": ["sgm.bicubic=false"],
     "- interpolated read-back at each pixel (nearest cell)": ["sgm.interpolate=false"],
     "- median over each surface": ["sgm.median=false"],
+    "- median about the window's plane where it lies on one (the plain median)": ["sgm.slanted_median=false"],
     "- plane fit on plain windows": ["sgm.plain_fit=false"],
     "- holes of plain planes filled": ["sgm.planes=false"],
     "- matches without signal on plain planes moved onto them": ["sgm.plane_snap=false"],
