@@ -1061,7 +1061,8 @@ def test_the_local_planes_are_the_least_squares_planes_of_each_window():
     disp[rng.random((rows, cols)) < 0.3] = -1.0
     plane, rms, slope = local_planes(disp, -0.5)
     h = PLAIN_FIT_HALF
-    for i, j in [(0, 0), (5, 40), (31, 3), (32, 33), (64, 69), (89, 20)] + [tuple(x) for x in rng.integers(0, 70, (20, 2))]:
+    cells = [(0, 0), (5, 40), (31, 3), (32, 33), (64, 69), (89, 20)] + [tuple(x) for x in rng.integers(0, 70, (20, 2))]
+    for i, j in cells:
         if disp[i, j] <= -0.5:
             assert plane[i, j] == disp[i, j] and np.isinf(rms[i, j]) and slope[i, j] == 0
             continue
