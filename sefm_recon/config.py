@@ -271,7 +271,6 @@ class SgmConfig:
     interpolate: bool = True  #: read disparities back interpolated over the surface (false: nearest cell)
     median: bool = True  #: smooth the disparities by a 5x5 median on their surface (false: as SGM leaves them)
     slanted_median: bool = True  #: on a window's sloping plane, the median about that plane (false: the plain one)
-    slanted_median: bool = True  #: on slanted surfaces, the median with the slope taken out (false: OpenCV's median)
     plain_fit: bool = True  #: on plain windows, each disparity from its surface's local plane (false: the median's)
     planes: bool = True  #: fill large plain regions whose matches lie on one plane (:mod:`.matching.planes`)
     plane_snap: bool = True  #: move the matches without signal of large plain regions that are one plane onto it (:mod:`.matching.planes`)
