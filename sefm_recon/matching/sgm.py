@@ -948,10 +948,11 @@ def surface_median(disp: np.ndarray, invalid: float, passes: int = MEDIAN_PASSES
         plane, rms, slope = local_planes(disp, invalid)
         on_plane = cv2.bitwise_and(cv2.bitwise_and(valid, cv2.compare(rms, PLANE_RMS, cv2.CMP_LE)),
                                    cv2.compare(slope, MEDIAN_MIN_SLOPE, cv2.CMP_GE))  # 0 / 1
+        off = checker.copy()  # its invalid cells keep the checkerboard; each pass sets the valid ones
     for _ in range(passes):
         med = cv2.medianBlur(src, 5)
         if plane is not None:
-            off = cv2.copyTo(cv2.subtract(src, plane), valid, checker.copy())
+            cv2.copyTo(cv2.subtract(src, plane), valid, off)
             cv2.copyTo(cv2.add(cv2.medianBlur(off, 5), plane), on_plane, med)
         take = cv2.compare(cv2.absdiff(med, src), MEDIAN_SAME_SURFACE, cv2.CMP_LE)
         cv2.copyTo(med, cv2.bitwise_and(take, valid), src)  # compare gives 0 / 255
@@ -1011,11 +1012,9 @@ def _local_planes(disp, invalid, half, block):
                 cuv = (P[4, hi] - P[4, lo]) / n - (sx / n) * mv
                 cud = (P[7, hi] - P[7, lo]) / n - (sx / n) * md
                 cvd = (P[8, hi] - P[8, lo]) / n - mv * md
-                det = cuu * cvv - cuv * cuv
-                if det <= 1e-6:
+                a, b_ = _plane_slopes(cuu, cvv, cuv, cud, cvd)
+                if np.isnan(a):
                     continue
-                a = (cud * cvv - cvd * cuv) / det
-                b_ = (cvd * cuu - cud * cuv) / det
                 cdd = (P[9, hi] - P[9, lo]) / n - md * md
                 plane[r, c] = md - a * mu - b_ * mv
                 rms[r, c] = math.sqrt(max(cdd - a * cud - b_ * cvd, 0.0))
@@ -1092,13 +1091,20 @@ def _plane_at_cell(n, su, sv, sd, suu, svv, suv, sud, svd, d0):
     (u, v relative to the cell), at the cell (e); ``d0`` where the cells lie on one line."""
     mu, mv, md = su / n, sv / n, sd / n
     cuu, cvv, cuv = suu / n - mu * mu, svv / n - mv * mv, suv / n - mu * mv
-    cud, cvd = sud / n - mu * md, svd / n - mv * md
-    det = cuu * cvv - cuv * cuv
-    if det <= 1e-6:  # the cells lie on one line: no plane
+    a, b = _plane_slopes(cuu, cvv, cuv, sud / n - mu * md, svd / n - mv * md)
+    if np.isnan(a):
         return d0
-    a = (cud * cvv - cvd * cuv) / det
-    b = (cvd * cuu - cud * cuv) / det
     return md - a * mu - b * mv
+
+
+@njit(cache=True)
+def _plane_slopes(cuu, cvv, cuv, cud, cvd):
+    """The slopes (a, b) of the least-squares plane d = a u + b v + e from the cells'
+    (co)variances of u, v and d; (nan, nan) where the cells lie on one line (no plane)."""
+    det = cuu * cvv - cuv * cuv
+    if det <= 1e-6:
+        return np.nan, np.nan
+    return (cud * cvv - cvd * cuv) / det, (cvd * cuu - cud * cuv) / det
 
 
 @njit(parallel=True, cache=True)
