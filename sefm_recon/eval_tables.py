@@ -67,6 +67,8 @@ SGM_ABLATIONS: dict[str, list[str]] = {
     "- estimates at the ends of the search dropped": ["sgm.end_check=false"],
     "- estimates whose window reaches into an area of one value dropped": ["sgm.flat_check=false"],
     "- estimates whose window in image 2 reaches beyond it dropped": ["sgm.outside_check=false"],
+    "- runs matching image 1's edge to image 2's beyond a nearer surface's occlusion dropped":
+        ["sgm.frame_check=false"],
     "- the nearer surface's cell at each depth edge dropped": ["sgm.edge_check=false"],
     "- of two surfaces reaching one pixel of image 2, the one whose colour differs dropped": ["sgm.collision_check=false"],
     "- plain cells a nearer surface carries into an unmatched region dropped": ["sgm.occlusion_check=false"],

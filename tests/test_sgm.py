@@ -127,10 +127,16 @@ def test_image_2s_spans_hold_only_its_own_pixels():
     # fall either way
     surely, maybe = own_cells(1e-4), own_cells(-1e-4)
     for bicubic in (True, False):
-        _, L2, span2 = line_images(flat, flat, tv, grid, width, shift2=shift2, bicubic=bicubic, spans=True,
-                                   window=BLOCK)
+        _, L2, span2, frames = line_images(flat, flat, tv, grid, width, shift2=shift2, bicubic=bicubic, spans=True,
+                                           window=BLOCK, frames=True)
         assert (L2[front & (beyond <= 0.0)] == 200).all()
         assert (L2[~front | (beyond > 0.0)] == 0).all()
+        # the frames: each row's first and last cell inside image 2 (its samples not 0)
+        held = L2 > 0
+        assert held.any(axis=1).all()
+        assert (frames[1, :, 0] == held.argmax(axis=1)).all()
+        assert (frames[1, :, 1] == width - 1 - held[:, ::-1].argmax(axis=1)).all()
+        assert (frames[0] >= 0).all() and (frames[0, :, 1] > frames[0, :, 0]).all()
         inside = (np.arange(width)[None, :] >= span2[:, :1]) & (np.arange(width)[None, :] <= span2[:, 1:])
         assert inside.sum() > 0.5 * L2.size
         assert (inside >= surely).all() and (inside <= maybe).all() and (surely != maybe).sum() < 10
@@ -956,6 +962,36 @@ def test_far_end_estimates_of_cells_image_2_sees_only_there_are_dropped():
     assert unseen.sum() == 27 and (disp[:, unseen] == -1.0).all()
     assert (disp[:, ~unseen & (x < 40)] == 15.0).all() and (disp[:, 40:] == 30.0).all()
     assert n == rows * unseen.sum()
+
+
+def test_runs_matching_image_1s_edge_to_image_2s_beyond_an_occlusions_width_are_dropped():
+    from sefm_recon.matching.sgm import MEDIAN_SAME_SURFACE, drop_frame_end_runs
+
+    shift, width = 10, 120
+    # image 1's frame on each row from column 20 to 110, image 2's from 5 to 100
+    frames = np.tile(np.array([[20, 110], [5, 100]])[:, None, :], (1, 6, 1))
+    disp = np.full((6, width), -1.0, np.float32)
+    # a run from 3 cells inside image 1's edge whose first cell matches 3 columns inside
+    # image 2's (23 - (25 - shift) = 5 + 3), then a surface 10 columns nearer from x = 50.
+    # Rows 0-1: a gap of 20 cells, wider than the 10 that the nearer surface hides in image
+    # 2 (dropped); rows 2-3: a gap of 12, within MEDIAN_SAME_SURFACE of it (a background
+    # beside a real occlusion: kept)
+    disp[:5, 23:30] = 25.0
+    disp[:5, 50:100] = 35.0
+    disp[2:4, 30:38] = 25.0
+    assert 12 - 10 <= MEDIAN_SAME_SURFACE < 20 - 10
+    # row 4: the first cell matched 2 columns beyond image 2's edge, not aligned (kept)
+    disp[4, 23:30] = 30.0
+    # row 5, the row's end mirrored: image 1's last cells 3 inside its edge matched 3 inside
+    # image 2's (107 - (20 - shift) = 100 - 3), a gap of 20, a surface 7 columns nearer
+    disp[5, 104:108] = 20.0
+    disp[5, 40:84] = 27.0
+    before = disp.copy()
+    n = drop_frame_end_runs(disp, frames, shift, -1.0)
+    assert (disp[:2, 23:30] == -1.0).all() and (disp[:2, 50:] == before[:2, 50:]).all()
+    assert (disp[2:5] == before[2:5]).all()
+    assert (disp[5, 104:108] == -1.0).all() and (disp[5, 40:84] == 27.0).all()
+    assert n == 2 * 7 + 4
 
 
 def test_far_end_surfaces_that_image_2_sees_nowhere_at_every_parallax_are_dropped():

@@ -232,8 +232,22 @@ def _zero_beyond(rows, mx, my, x_lo, x_hi, y_lo, y_hi):
                     rows[r, c, k] = 0
 
 
+@njit(parallel=True, cache=True)
+def _frame_span(mx, my, x_lo, x_hi, y_lo, y_hi, out):
+    """``out`` (rows, 2): per row of the maps, the first and last column whose position lies
+    within ``x_lo..x_hi`` by ``y_lo..y_hi`` (the cells :func:`_zero_beyond` keeps); -1, -1
+    where none does."""
+    for r in prange(mx.shape[0]):
+        out[r, 0] = out[r, 1] = -1
+        for c in range(mx.shape[1]):
+            if x_lo <= mx[r, c] <= x_hi and y_lo <= my[r, c] <= y_hi:
+                if out[r, 0] < 0:
+                    out[r, 0] = c
+                out[r, 1] = c
+
+
 def line_images(img1: np.ndarray, img2: np.ndarray, tv: TwoView, grid: LineGrid, width: int, shift2: int = 0,
-                bicubic: bool = True, spans: bool = False, window: int = 1):
+                bicubic: bool = True, spans: bool = False, window: int = 1, frames: bool = False):
     """Both images resampled (bicubic, else bilinear) onto the grid's rows and ``width`` columns,
     image 2's shifted: its column ``c`` holds the grid's column ``c - shift2``, so that a
     match ``x2 = x1 - d`` lies at ``x1 - (d - shift2)`` in the line images.
@@ -246,7 +260,9 @@ def line_images(img1: np.ndarray, img2: np.ndarray, tv: TwoView, grid: LineGrid,
     last column of each row whose cell and the cells of the ``window`` rows about it (a
     matcher's window: odd) lie between image 2's outermost pixel centres, one cell short
     of them along the row; rows beyond the line image's first and last do not count
-    (first > last: none).
+    (first > last: none). With ``frames``, last: (2, rows, 2) int64, per image and row the
+    first and last column whose ray meets the image plane within the image's frame
+    (COLMAP's ``0..w`` by ``0..h``, the cells not set to 0); -1, -1 where none does.
 
     (Repeating the outermost pixels 2 px beyond the edge, half a window, matched the rim
     of the rect pairs, +0.0035 of coverage at 1 px, but carried SGM's depth of Plastic's
@@ -255,6 +271,7 @@ def line_images(img1: np.ndarray, img2: np.ndarray, tv: TwoView, grid: LineGrid,
     interpolation = cv2.INTER_CUBIC if bicubic else cv2.INTER_LINEAR
     out = []
     span2 = np.zeros((len(grid.phi), 2), np.int64)
+    frame = np.zeros((2, len(grid.phi), 2), np.int64)
     own = np.zeros((len(grid.phi), width), np.uint8) if spans else None
     for k, (img, K, Rc, shift) in enumerate(((img1, tv.K1, np.eye(3), 0), (img2, tv.K2, tv.R.T, shift2))):
         alpha = grid.alpha(np.arange(width) - shift)
@@ -272,6 +289,8 @@ def line_images(img1: np.ndarray, img2: np.ndarray, tv: TwoView, grid: LineGrid,
             h, w = img.shape[:2]
             # cv2's pixel centres are integers: COLMAP's edge 0 is -0.5
             _zero_beyond(rows.reshape(rows.shape[0], rows.shape[1], -1), mx, my, -0.5, w - 0.5, -0.5, h - 0.5)
+            if frames:
+                _frame_span(mx, my, -0.5, w - 0.5, -0.5, h - 0.5, frame[k, r0:r0 + len(phi)])
             L[r0:r0 + len(phi)] = rows
             if spans and k == 1:
                 # samples between image 2's outermost pixel centres (their interpolation
@@ -288,5 +307,7 @@ def line_images(img1: np.ndarray, img2: np.ndarray, tv: TwoView, grid: LineGrid,
         any_in = inside.any(axis=1)
         span2[:, 0] = np.where(any_in, inside.argmax(axis=1), width)
         span2[:, 1] = np.where(any_in, width - 1 - inside[:, ::-1].argmax(axis=1), -1)
-        return out[0], out[1], span2
-    return out[0], out[1]
+        out.append(span2)
+    if frames:
+        out.append(frame)
+    return tuple(out)

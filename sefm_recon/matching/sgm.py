@@ -47,7 +47,8 @@ from .zncc import zncc
 logger = logging.getLogger(__name__)
 
 __all__ = ["choose_jump_penalty", "coarse_parallax", "coarse_range", "CoarseParallax", "drop_carried_plain",
-           "drop_collisions", "drop_fattened_cells", "drop_flat_windows", "drop_left_right", "drop_occluded_plain",
+           "drop_collisions", "drop_fattened_cells", "drop_flat_windows", "drop_frame_end_runs", "drop_left_right",
+           "drop_occluded_plain",
            "drop_off_half_size", "drop_outside_windows", "drop_range_ends", "drop_unanchored_far", "drop_unseen_far",
            "drop_unsupported_near", "every_parallax", "extend_near", "fill_from_half_size",
            "fit_plain_surfaces", "flat_windows", "half_size_sgm", "halve_line_images", "jump_ladder",
@@ -682,6 +683,76 @@ def _drop_unanchored(disp, first, end, invalid, tol):
             if invalid < disp[r, x] < end and not anchored[r * width + x]:
                 disp[r, x] = invalid
                 count += 1
+    return count
+
+
+#: A run at a line's end is judged where it starts within this many cells of image 1's edge
+#: (a window's width, BLOCK - 1: the flat check leaves the cells whose window reaches the
+#: fill of one value beyond the edge, up to 2-3 cells in).
+FRAME_RUN_REACH = BLOCK - 1
+#: ...and puts that end within this many columns of image 2's edge: its first cell matched to
+#: image 2's first cell, to within the interpolation's half column and OpenCV's half column.
+FRAME_END_COLUMNS = 1.5
+
+
+def drop_frame_end_runs(disp: np.ndarray, frames: np.ndarray, shift: int, invalid: float) -> int:
+    """Set the runs of valid cells at a row's ends that match image 1's edge to image 2's
+    and lie beside a nearer surface farther than a half-occlusion from them to ``invalid``,
+    in place; returns how many cells.
+
+    A run (consecutive valid cells) is judged where it starts within :data:`FRAME_RUN_REACH`
+    cells of image 1's edge on the row and its first cell's partner lies as far from image
+    2's edge, within :data:`FRAME_END_COLUMNS`: the two line images' ends matched to each
+    other. Beyond a gap of cells without an estimate, the next run is nearer by more than
+    :data:`MEDIAN_SAME_SURFACE` columns (another surface). A farther surface beside a nearer
+    one leaves unmatched in image 1 the strip that the nearer hides in image 2, as wide as
+    their parallax difference: where the gap is that wide (within :data:`MEDIAN_SAME_SURFACE`)
+    or narrower, the run is a surface the two images' edges both see (a real pair's
+    background at its border), and stays. Where the gap is wider, nothing in the scene
+    explains it: image 1's end of the line, which image 2 does not see (the floor a forward
+    camera moves over, below image 2), matched to image 2's end, and the run is dropped.
+
+    ``disp`` (rows, width) float32 parallax in columns, image 2's line image shifted by
+    ``shift`` (a cell ``x`` of parallax ``d`` matches ``x - (d - shift)``), invalid at or
+    below ``invalid``; ``frames`` (2, rows, 2) each image's first and last column within its
+    frame (:func:`.lines.line_images`, -1 where none).
+    """
+    return int(_drop_frame_end_runs(disp, frames, float(shift), float(invalid), FRAME_RUN_REACH, FRAME_END_COLUMNS,
+                                    MEDIAN_SAME_SURFACE).sum())
+
+
+@njit(parallel=True, cache=True)
+def _drop_frame_end_runs(disp, frames, shift, invalid, reach, tol, same):
+    rows, width = disp.shape
+    count = np.zeros(rows, np.int64)
+    for r in prange(rows):
+        if frames[0, r, 0] < 0 or frames[1, r, 0] < 0:
+            continue
+        for side in range(2):  # the row's start (columns rising), then its end (falling)
+            step = 1 if side == 0 else -1
+            edge1, edge2 = frames[0, r, side], frames[1, r, side]
+            f = 0 if side == 0 else width - 1
+            while 0 <= f < width and disp[r, f] <= invalid:
+                f += step
+            if not 0 <= f < width:
+                break
+            partner = f - (disp[r, f] - shift)
+            if step * (f - edge1) > reach or abs(step * (f - edge1) - step * (partner - edge2)) > tol:
+                continue
+            x = f  # the run's end (exclusive), then the gap's
+            while 0 <= x < width and disp[r, x] > invalid:
+                x += step
+            y = x
+            while 0 <= y < width and disp[r, y] <= invalid:
+                y += step
+            if not 0 <= y < width:
+                continue
+            jump = disp[r, y] - disp[r, x - step]
+            if jump <= same or step * (y - x) <= jump + same:
+                continue
+            for k in range(f, x, step):
+                disp[r, k] = invalid
+            count[r] += step * (x - f)
     return count
 
 
@@ -1886,8 +1957,8 @@ def match_pair_sgm(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config,
     # left of image 1's columns holds the search window of its first columns.
     grid.pad = num_d + 1
     width = grid.pad + grid.columns + 1
-    L1, L2, span2 = line_images(img1, img2, tv, grid, width, shift2=min_d, bicubic=opt.bicubic, spans=True,
-                                window=BLOCK)
+    L1, L2, span2, frames = line_images(img1, img2, tv, grid, width, shift2=min_d, bicubic=opt.bicubic, spans=True,
+                                        window=BLOCK, frames=True)
     timings["line_pairs"] = time.perf_counter() - t0
     logger.info("line images %dx%d, parallax %d..%d columns", width, len(grid.phi), min_d, min_d + num_d)
 
@@ -1922,6 +1993,7 @@ def match_pair_sgm(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config,
     n_near = 0
     if found is not None and opt.near_check:
         n_near = drop_unsupported_near(disp, grid, found, near, near_end, min_d - 1.0)
+    n_frame = drop_frame_end_runs(disp, frames, min_d, min_d - 1.0) if opt.frame_check else 0
     n_fat = drop_fattened_cells(disp, min_d - 1.0) if opt.edge_check else 0
     if opt.median:
         surface_median(disp, min_d - 1.0, slanted=opt.slanted_median)
@@ -1966,10 +2038,11 @@ def match_pair_sgm(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config,
                 "windows without signal, %d on windows beyond image 2, %d sharing a pixel of image 2 with another "
                 "surface, %d carried into an unmatched plain region, %d carried across a depth jump on a plain region, "
                 "%d far where image 2 sees no nearer parallax or on a surface it sees nowhere at every one, %d near "
-                "without a coarse surface there and %d fattened at depth edges dropped), %d on plain windows fitted "
+                "without a coarse surface there, %d in runs matching image 1's edge to image 2's and %d fattened at "
+                "depth edges dropped), %d on plain windows fitted "
                 "to their surface's plane, %d filled on plain planes and %d moved onto them, %d on plain regions "
                 "mostly unmatched and on no one plane dropped, %d valid",
                 "4 full paths" if full else "3 directions", counts["line_pairs"], n_dense, n_half, n_off, n_lr, n_ends,
-                n_flat, n_out, n_col, n_occ, n_car, n_far, n_near, n_fat, n_fit, n_planes, n_moved, n_scattered,
-                len(uv1))
+                n_flat, n_out, n_col, n_occ, n_car, n_far, n_near, n_frame, n_fat, n_fit, n_planes, n_moved,
+                n_scattered, len(uv1))
     return DenseMatches(uv1, uv2, score, rows, X, counts, timings)
