@@ -24,7 +24,7 @@ def append_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """``a`` followed by the rows of ``b``, without copying ``a`` where it can be.
 
     Where ``a`` is a leading slice of a C-contiguous array with room for ``b`` after it
-    (as :func:`sefm_recon.matching.sgm.pixel_matches` returns its arrays), ``b`` is written
+    (as :func:`sefm_recon.matching.readback.pixel_matches` returns its arrays), ``b`` is written
     into that room and the longer slice returned; the caller owns the room. Otherwise a
     concatenation. Appending a few thousand rows to millions copies only those.
     """

@@ -16,6 +16,15 @@ def rot_y(a: float) -> np.ndarray:
     return np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])
 
 
+def two_view(R, t, f=300.0, w=320, h=240):
+    """The geometry of two cameras with the same K (focal ``f``, principal point at the centre
+    of a ``w`` x ``h`` image), camera 2 at ``R``, ``t`` (x_cam2 = R x_cam1 + t), no SIFT points."""
+    from sefm_recon.geometry.two_view import TwoView
+
+    K = np.array([[f, 0, w / 2], [0, f, h / 2], [0, 0, 1.0]])
+    return TwoView(K, K, np.asarray(R, float), np.asarray(t, float), np.zeros((0, 2)), np.zeros((0, 2)), 0)
+
+
 #: Camera and image size of the line-pair tests' pair (:func:`tilted_lines`).
 LINE_K = np.array([[500.0, 0, 320], [0, 500, 240], [0, 0, 1]])
 LINE_SIZE = (640, 480)

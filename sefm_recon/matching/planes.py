@@ -1,7 +1,7 @@
 """Plain surfaces filled from their own matches (``sgm.planes``), an addition beyond the paper.
 
 Semi-global matching leaves much of a plain surface unmatched: its windows carry too
-little signal for the uniqueness test, or only ties (:func:`.sgm.drop_range_ends`).
+little signal for the uniqueness test, or only ties (:func:`.checks.drop_range_ends`).
 Where such a surface is one plane and enough of it did match, the plane is known:
 the matches on it, each a plain window of the same surface, fit one homography
 between the images. Image 1 is cut into plain regions at its intensity edges
@@ -23,7 +23,7 @@ Where a region is one plane all through (nearly all its matches within
 its winner is set by the smoothness penalties alone, so that a slanted plain
 surface comes out as a wave of fronto-parallel steps around the plane (Plastic's
 box face: 1-1.7 px off over runs of 20-40 px, more than the local plane fit of
-:func:`.sgm.fit_plain_surfaces` spans).
+:func:`.surfaces.fit_plain_surfaces` spans).
 
 Small plain regions (:func:`_rim_planes`) hold too few matches of their own for a
 plane, but their rim, the intensity edge around them, is texture SGM matches well:
@@ -98,7 +98,7 @@ MAX_FIT_MATCHES = 5000
 #: share is 0 whatever the bar. Real pairs 0.9529 / 0.8806 -> 0.9526 / 0.8844 at 1 px (true
 #: pose), generated 0.9222 / 0.6933 -> 0.9225 / 0.6971.
 MIN_HOLE_SUPPORT = 0.1
-#: ...over a window three matching windows (:data:`.sgm.BLOCK`) across.
+#: ...over a window three matching windows (:data:`.stereo_sgbm.BLOCK`) across.
 HOLE_WINDOW = 15
 #: Fills that would add fewer than this share of the matches are left out (before the
 #: occlusion test, the costliest step): they move no figure at three decimals, and appending
@@ -129,7 +129,7 @@ SNAP_SHARE = 0.95
 #: 1.3-1.6), SGM follows its curvature, which a plane would flatten (without this test
 #: Flowerpots lost 0.004-0.010 of precision at 1 px).
 SNAP_LEVELS = 1.0
-#: ...the window of SGM's matching cost (:data:`.sgm.BLOCK`).
+#: ...the window of SGM's matching cost (:data:`.stereo_sgbm.BLOCK`).
 SNAP_WINDOW = 5
 #: The plane is fitted again from the matches near the last fit this many times (the first
 #: fit from RANSAC's inliers within 1 px): in the test's wave (steps and runs 1.2 px either
@@ -138,7 +138,7 @@ SNAP_WINDOW = 5
 SNAP_FITS = 2
 #: Plain regions from this many pixels (a 10 px square) up to the large ones
 #: (:data:`MIN_REGION_SHARE`) are judged by their rim (:func:`_rim_planes`); smaller ones lie
-#: within the 9 x 9 window of the local plane fit (:func:`.sgm.fit_plain_surfaces`).
+#: within the 9 x 9 window of the local plane fit (:func:`.surfaces.fit_plain_surfaces`).
 MIN_RIM_REGION = 100
 #: The rim: the pixels within this many px outside the region. The regions stop a pixel
 #: short of their edges (:func:`plain_regions`), so 3 px reach across a 1-2 px edge.
