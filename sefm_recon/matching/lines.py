@@ -220,30 +220,22 @@ def _remap_maps(P, basis, phi, alpha, mx, my):
 
 
 @njit(parallel=True, cache=True)
-def _zero_beyond(rows, mx, my, x_lo, x_hi, y_lo, y_hi):
+def _zero_beyond(rows, mx, my, x_lo, x_hi, y_lo, y_hi, span):
     """Set the cells of ``rows`` (r, c, channels) whose map position lies outside
-    ``x_lo..x_hi`` by ``y_lo..y_hi`` to 0, in place (numpy's masks took 70 ms on the bench pair)."""
+    ``x_lo..x_hi`` by ``y_lo..y_hi`` to 0, in place (numpy's masks took 70 ms on the bench
+    pair); ``span`` (r, 2): each row's first and last cell kept, -1, -1 where none is."""
     for r in prange(rows.shape[0]):
+        span[r, 0] = span[r, 1] = -1
         for c in range(rows.shape[1]):
             x = mx[r, c]
             y = my[r, c]
             if x < x_lo or x > x_hi or y < y_lo or y > y_hi:
                 for k in range(rows.shape[2]):
                     rows[r, c, k] = 0
-
-
-@njit(parallel=True, cache=True)
-def _frame_span(mx, my, x_lo, x_hi, y_lo, y_hi, out):
-    """``out`` (rows, 2): per row of the maps, the first and last column whose position lies
-    within ``x_lo..x_hi`` by ``y_lo..y_hi`` (the cells :func:`_zero_beyond` keeps); -1, -1
-    where none does."""
-    for r in prange(mx.shape[0]):
-        out[r, 0] = out[r, 1] = -1
-        for c in range(mx.shape[1]):
-            if x_lo <= mx[r, c] <= x_hi and y_lo <= my[r, c] <= y_hi:
-                if out[r, 0] < 0:
-                    out[r, 0] = c
-                out[r, 1] = c
+            else:
+                if span[r, 0] < 0:
+                    span[r, 0] = c
+                span[r, 1] = c
 
 
 def line_images(img1: np.ndarray, img2: np.ndarray, tv: TwoView, grid: LineGrid, width: int, shift2: int = 0,
@@ -288,9 +280,8 @@ def line_images(img1: np.ndarray, img2: np.ndarray, tv: TwoView, grid: LineGrid,
             rows = cv2.remap(img, mx, my, interpolation, borderMode=cv2.BORDER_REPLICATE)
             h, w = img.shape[:2]
             # cv2's pixel centres are integers: COLMAP's edge 0 is -0.5
-            _zero_beyond(rows.reshape(rows.shape[0], rows.shape[1], -1), mx, my, -0.5, w - 0.5, -0.5, h - 0.5)
-            if frames:
-                _frame_span(mx, my, -0.5, w - 0.5, -0.5, h - 0.5, frame[k, r0:r0 + len(phi)])
+            _zero_beyond(rows.reshape(rows.shape[0], rows.shape[1], -1), mx, my, -0.5, w - 0.5, -0.5, h - 0.5,
+                         frame[k, r0:r0 + len(phi)])
             L[r0:r0 + len(phi)] = rows
             if spans and k == 1:
                 # samples between image 2's outermost pixel centres (their interpolation
