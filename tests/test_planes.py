@@ -129,6 +129,31 @@ def test_a_mostly_unmatched_region_whose_matches_lie_on_no_one_plane_drops_them(
     assert len(fill_planes(gray, (W, H), tv, *split).dropped) == 0
 
 
+def test_a_mostly_unmatched_regions_matches_off_its_plane_go_unless_they_are_a_second_surface():
+    """A third of the plain square matched: 80 % on one plane, the rest in 8 px patches at
+    three other depths drawn at random (a third of them on any one plane): those are dropped
+    and the plane's stay. The same rest on one second plane (a second surface in the region)
+    stays, as it does with ``drop=False``."""
+    tv, gray = _scene()
+    rng = np.random.default_rng(5)
+    px = _plain_pixels()
+    some = px[rng.random(len(px)) < 0.3]
+    cell = rng.random((H // 8 + 1, W // 8 + 1))
+    off = cell[some[:, 0] // 8, some[:, 1] // 8] < 0.2
+    depth = rng.integers(1, 4, cell.shape)[some[:, 0] // 8, some[:, 1] // 8]
+    parts = [_matches(tv, some[~off])] + [_matches(tv, some[off & (depth == b)], disp=DISP + 4 * b) for b in (1, 2, 3)]
+    patches = [np.concatenate(a) for a in zip(*parts)]
+    n_on = int(np.count_nonzero(~off))
+    assert 0.1 < np.mean(off) < 0.3
+    out = fill_planes(gray, (W, H), tv, *patches)
+    np.testing.assert_array_equal(np.sort(out.dropped), np.arange(n_on, len(some)))
+    gone = {tuple(p) for p in patches[0][n_on:]}  # their pixels are holes of the plane, filled
+    assert len(gone & {tuple(p) for p in out.uv1}) >= 0.9 * len(gone)
+    assert len(fill_planes(gray, (W, H), tv, *patches, drop=False).dropped) == 0
+    second = [np.concatenate(a) for a in zip(_matches(tv, some[~off]), _matches(tv, some[off], disp=DISP + 4))]
+    assert len(fill_planes(gray, (W, H), tv, *second).dropped) == 0
+
+
 def test_a_hole_whose_partner_a_nearer_surface_covers_in_view_2_stays_empty():
     tv, gray = _scene()
     px = _plain_pixels()

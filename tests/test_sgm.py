@@ -655,6 +655,34 @@ def test_estimates_at_the_near_end_stay_only_where_the_coarse_pass_found_a_surfa
     assert n == rows * 15 and disp[0, 0] == -1.0
 
 
+def test_estimates_far_from_the_coarse_pass_are_dropped_only_where_it_is_sure():
+    from sefm_recon.matching.sgm import COARSE_CHECK_COLUMNS, COARSE_CHECK_MARGIN, CoarseParallax, drop_off_coarse
+
+    _, _, tv, _ = _lateral_pair()
+    grid = line_grid(tv, (320, 240), (320, 240))
+    rows, cols, step = len(grid.phi), 80, 2.0
+    tol = COARSE_CHECK_COLUMNS * step + COARSE_CHECK_MARGIN  # 6 columns
+    coarse = np.full((rows, cols), 30.0, np.float32)  # one textured surface at 30 ...
+    textured = np.ones((rows, cols), bool)
+    coarse[:, 40:50] = np.nan  # ... with a band the coarse pass left without an estimate
+    textured[:, 60:70] = False  # and a plain one (its estimates are ties)
+    disp = np.full((rows, cols), 30.0, np.float32)
+    disp[:, 10:20] = 30.0 + tol + 2.0  # a patch a period off: dropped
+    disp[:, 22:26] = 30.0 + tol - 0.5  # within the tolerance: kept
+    disp[:, 39] = 50.0  # off, beside the band: the 3x3 square about the coarse cell holds no estimate there
+    disp[:, 50] = 50.0
+    disp[:, 37] = 50.0  # one cell further the square is whole again: dropped
+    disp[:, 61:69] = 50.0  # off, on the plain band: not sure either
+    disp[0, 0] = -1.0  # invalid stays so
+    before = disp.copy()
+    n = drop_off_coarse(disp, grid, CoarseParallax(coarse, textured, step, grid), -1.0)
+    assert (disp[:, 10:20] == -1.0).all() and (disp[:, 37] == -1.0).all()
+    keep = np.ones(cols, bool)
+    keep[10:20] = keep[37] = False
+    assert (disp[:, keep] == before[:, keep]).all()
+    assert n == rows * 11
+
+
 def test_the_search_follows_a_floor_nearer_than_its_sift_points():
     # A rectified pair of one slanted surface (a floor towards the camera): disparity
     # from 10 px at the top row to 100 px at the bottom. SIFT points on the top third
