@@ -604,7 +604,8 @@ def fill_planes(gray1: np.ndarray, size2: tuple[int, int], tv, uv1: np.ndarray, 
     skip = np.union1d(out.moved, out.dropped).astype(np.int64)  # sorted
     zbuf = _nearest_depth(np.ascontiguousarray(uv2), np.ascontiguousarray(X), np.ascontiguousarray(tv.R, np.float64),
                           np.asarray(tv.t, np.float64), *size2, skip,
-                          np.ascontiguousarray(out.moved_uv2, np.float64), np.ascontiguousarray(out.moved_xyz, np.float64))
+                          np.ascontiguousarray(out.moved_uv2, np.float64),
+                          np.ascontiguousarray(out.moved_xyz, np.float64))
     Xa, va, _ = triangulate(tv.K1, tv.K2, tv.R, tv.t, a1, a2)
     za = Xa @ tv.R[2] + tv.t[2]
     keep = va & ~_hidden(np.ascontiguousarray(a2), np.ascontiguousarray(za), zbuf, HIDDEN_DEPTH_SHARE)
