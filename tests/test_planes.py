@@ -131,9 +131,11 @@ def test_a_mostly_unmatched_region_whose_matches_lie_on_no_one_plane_drops_them(
 
 def test_a_mostly_unmatched_regions_matches_off_its_plane_go_unless_they_are_a_second_surface():
     """A third of the plain square matched: 80 % on one plane, the rest in 8 px patches at
-    three other depths drawn at random (a third of them on any one plane): those are dropped
-    and the plane's stay. The same rest on one second plane (a second surface in the region)
-    stays, as it does with ``drop=False``."""
+    three other depths drawn at random (a third of them on any one plane): those are dropped,
+    the plane's stay, and the patches' pixels are filled from the plane. The same rest on one
+    second plane (a second surface in the region) stays, as it does with ``drop=False``. With
+    the patches 45 % of the matches, they go too, but the plane fills nothing: its support is
+    judged on every match of the region (55 %, under the fill's 60 %)."""
     tv, gray = _scene()
     rng = np.random.default_rng(5)
     px = _plain_pixels()
@@ -152,6 +154,11 @@ def test_a_mostly_unmatched_regions_matches_off_its_plane_go_unless_they_are_a_s
     assert len(fill_planes(gray, (W, H), tv, *patches, drop=False).dropped) == 0
     second = [np.concatenate(a) for a in zip(_matches(tv, some[~off]), _matches(tv, some[off], disp=DISP + 4))]
     assert len(fill_planes(gray, (W, H), tv, *second).dropped) == 0
+    off = cell[some[:, 0] // 8, some[:, 1] // 8] < 0.45
+    parts = [_matches(tv, some[~off])] + [_matches(tv, some[off & (depth == b)], disp=DISP + 4 * b) for b in (1, 2, 3)]
+    assert 0.4 < np.mean(off) < 0.5
+    out = fill_planes(gray, (W, H), tv, *[np.concatenate(a) for a in zip(*parts)])
+    assert len(out.dropped) == np.count_nonzero(off) and len(out.uv1) == 0
 
 
 def test_a_hole_whose_partner_a_nearer_surface_covers_in_view_2_stays_empty():

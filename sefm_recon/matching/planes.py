@@ -86,12 +86,13 @@ MIN_PLANE_SUPPORT = 0.6
 #: at 1 px, 92 % at 3 px).
 MAX_SCATTERED_SUPPORT = 0.5
 #: In a region under :data:`MOSTLY_UNMATCHED_SHARE` matched whose matches do lie on one plane,
-#: the matches off it face the same test: on a second plane (under the share of
-#: :data:`MAX_SCATTERED_SUPPORT` off it) they are a second surface and stay, else they are
-#: patches carried over the plain surface and are dropped. Real pairs' back walls (Midd1 conv,
-#: Midd2 rect: 21-30 % matched, 80-84 % on one plane): their off-plane matches 1-9 % right at
-#: 1 px, 33-39 % on a second plane; a region over a lampshade and the wall beside it (Lampshade2
-#: rect: 46 % matched, 61 % on one plane): its off-plane matches 99 % right, 68 % on a second plane.
+#: the matches off it face the same test: on a second plane (at least
+#: :data:`MAX_SCATTERED_SUPPORT` of them within 1 px of one homography) they are a second
+#: surface and stay, else they are patches carried over the plain surface and are dropped
+#: (their pixels become holes of the plane). Real pairs' back walls (Midd1 conv, Midd2 rect:
+#: 21-30 % matched, 80-84 % on one plane): their off-plane matches 1-9 % right at 1 px, 33-39 %
+#: on a second plane; a region over a lampshade and the wall beside it (Lampshade2 rect: 46 %
+#: matched, 61 % on one plane): its off-plane matches 99 % right, 68 % on a second plane.
 #: Fewer than this many matches off the plane are too few for a homography (4 points fix one,
 #: and RANSAC needs some to spare) and stay.
 MIN_OFF_PLANE = 8
