@@ -683,6 +683,24 @@ def test_estimates_far_from_the_coarse_pass_are_dropped_only_where_it_is_sure():
     assert n == rows * 11
 
 
+def test_the_coarse_parallax_on_the_whole_grid_is_its_value_at_each_cell():
+    from sefm_recon.matching.sgm import CoarseParallax
+
+    _, _, tv, _ = _lateral_pair()
+    grid = line_grid(tv, (320, 240), (320, 240))
+    Kc = np.diag([0.25, 0.25, 1.0]) @ tv.K1  # a quarter-size pass: its own, coarser grid
+    coarse_grid = line_grid(TwoView(Kc, Kc, tv.R, tv.t), (80, 60), (80, 60))
+    rng = np.random.default_rng(0)
+    P = rng.uniform(0, 40, (len(coarse_grid.phi), coarse_grid.columns)).astype(np.float32)
+    P[rng.random(P.shape) < 0.2] = np.nan
+    found = CoarseParallax(P, np.ones(P.shape, bool), 4.0, coarse_grid)
+    columns = grid.columns + 20  # beyond the coarse line images too
+    whole = found.on_grid(grid, columns)
+    rows, cols = np.indices(whole.shape).reshape(2, -1)
+    np.testing.assert_array_equal(whole.ravel(), found.at(grid, rows, cols))
+    assert np.isnan(whole).any() and np.isfinite(whole).mean() > 0.5
+
+
 def test_the_search_follows_a_floor_nearer_than_its_sift_points():
     # A rectified pair of one slanted surface (a floor towards the camera): disparity
     # from 10 px at the top row to 100 px at the bottom. SIFT points on the top third

@@ -547,6 +547,19 @@ class CoarseParallax:
         out[inside] = self.parallax[r[inside], c[inside]]
         return out
 
+    def on_grid(self, grid: LineGrid, columns: int) -> np.ndarray:
+        """(rows of ``grid``, ``columns``) float32: :meth:`at` for every cell, gathered per row
+        and per column (the nearest coarse row depends on the row alone, the nearest coarse
+        column on the column alone): 0.01 s for the bench pair's 3.6 million cells, where
+        :meth:`at` over them takes 0.25 s."""
+        g = self.grid
+        r = np.round(np.interp(grid.phi, g.phi, np.arange(len(g.phi)))).astype(np.intp)
+        c = np.round(g.column(grid.alpha(np.arange(columns)))).astype(np.intp)
+        w = self.parallax.shape[1]
+        c[(c < 0) | (c >= w)] = w  # beyond the coarse line images: the NaN column appended
+        padded = np.concatenate([self.parallax, np.full((len(g.phi), 1), np.nan, np.float32)], axis=1)
+        return padded[r[:, None], c[None, :]]
+
 
 def coarse_parallax(img1: np.ndarray, img2: np.ndarray, tv: TwoView, grid: LineGrid, cfg: Config,
                     lo: float, hi: float) -> CoarseParallax | None:
@@ -703,12 +716,10 @@ def drop_off_coarse(disp: np.ndarray, grid: LineGrid, found: CoarseParallax, inv
     spread = cv2.subtract(cv2.dilate(np.where(finite, P, np.float32(-1e9)), square),
                           cv2.erode(np.where(finite, P, np.float32(1e9)), square))
     sure = every & (spread <= COARSE_CHECK_SPREAD * found.step)
-    rows, cols = np.nonzero(disp > invalid)
-    if len(rows) == 0:
-        return 0
-    there = dataclasses.replace(found, parallax=np.where(sure, P, np.float32(np.nan))).at(grid, rows, cols)
-    drop = np.abs(disp[rows, cols] - there) > COARSE_CHECK_COLUMNS * found.step + COARSE_CHECK_MARGIN  # NaN: kept
-    disp[rows[drop], cols[drop]] = invalid
+    there = dataclasses.replace(found, parallax=np.where(sure, P, np.float32(np.nan))).on_grid(grid, disp.shape[1])
+    with np.errstate(invalid="ignore"):  # NaN: not sure there, kept
+        drop = (disp > invalid) & (np.abs(disp - there) > COARSE_CHECK_COLUMNS * found.step + COARSE_CHECK_MARGIN)
+    disp[drop] = invalid
     return int(np.count_nonzero(drop))
 
 
