@@ -42,6 +42,7 @@ from .lines import LineGrid, line_grid, line_images, pixel_grid
 from .planes import fill_planes
 from .readback import pixel_matches
 from .sefm import DenseMatches, depth_range
+from .periodic import drop_repeating
 from .stereo_sgbm import (BLOCK, JUMP_PENALTY, LR_MAX_DIFF, STEP_PENALTY, num_disparities, sgbm_disparity,
                           speckle_share_for, volume_fits)
 from .surfaces import (SAME_SURFACE_COLUMNS, anchored_cells, fit_plain_surfaces, plain_windows, surface_forest,
@@ -797,6 +798,7 @@ def match_pair_sgm(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config,
     plain = plain_windows(L1) if opt.plain_fit or opt.occlusion_check or opt.carried_check else None
     n_occ = drop_occluded_plain(disp, L1, plain, span2, min_d, min_d - 1.0) if opt.occlusion_check else 0
     n_car = drop_carried_plain(disp, L1, plain, min_d - 1.0) if opt.carried_check else 0
+    gray1 = to_gray(L1) if opt.repeat_check else None
     del L1, L2
     far_end, near_end = lo + END_COLUMNS + 1, hi - END_COLUMNS - 1  # the range within its end columns
     n_far = drop_unseen_far(disp, span2, min_d, far_end, min_d - 1.0) if opt.far_check else 0
@@ -807,6 +809,8 @@ def match_pair_sgm(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config,
     if found is not None and opt.near_check:
         n_near = drop_unsupported_near(disp, grid, found, near, near_end, min_d - 1.0)
     n_coarse = drop_off_coarse(disp, grid, found, min_d - 1.0) if found is not None and opt.coarse_check else 0
+    n_rep = drop_repeating(disp, gray1, num_d, min_d - 1.0) if opt.repeat_check else 0
+    del gray1
     n_frame = drop_frame_end_runs(disp, frames, min_d, min_d - 1.0) if opt.frame_check else 0
     n_fat = drop_fattened_cells(disp, min_d - 1.0) if opt.edge_check else 0
     if opt.median:
@@ -852,12 +856,13 @@ def match_pair_sgm(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config,
                 "windows without signal, %d on windows beyond image 2, %d sharing a pixel of image 2 with another "
                 "surface, %d carried into an unmatched plain region, %d carried across a depth jump on a plain region, "
                 "%d far where image 2 sees no nearer parallax or on a surface it sees nowhere at every one, %d near "
-                "without a coarse surface there, %d far from the coarse pass's sure estimates, %d in runs matching "
-                "image 1's edge to image 2's and %d fattened at depth edges dropped), %d on plain windows fitted "
+                "without a coarse surface there, %d far from the coarse pass's sure estimates, %d on texture repeating "
+                "along the lines on surfaces without other texture, %d in runs matching image 1's edge to image 2's "
+                "and %d fattened at depth edges dropped), %d on plain windows fitted "
                 "to their surface's plane, %d filled on plain planes and %d moved onto them, %d on plain regions "
                 "mostly unmatched and on no one plane (or off theirs on no second one) dropped, %d valid",
                 "4 full paths" if full else "3 directions", counts["line_pairs"], n_dense, n_half, n_off, n_lr, n_ends,
-                n_flat, n_out, n_col, n_occ, n_car, n_far, n_near, n_coarse, n_frame, n_fat, n_fit, n_planes, n_moved,
-                n_scattered, len(uv1))
+                n_flat, n_out, n_col, n_occ, n_car, n_far, n_near, n_coarse, n_rep, n_frame, n_fat, n_fit, n_planes,
+                n_moved, n_scattered, len(uv1))
     return DenseMatches(uv1, uv2, score, rows, X, counts, timings)
 

@@ -1,0 +1,57 @@
+"""Estimates on texture that repeats along the lines (:mod:`sefm_recon.matching.periodic`)."""
+
+import numpy as np
+
+from sefm_recon.matching.periodic import (LEVEL_SHIFTS, ONCE_ZNCC, REPEAT_ZNCC, WINDOW_HALF, drop_repeating,
+                                          repeat_score)
+
+
+def _stripes(rows, cols, period, rng, noise=2.0):
+    """Diagonal stripes of ``period`` columns along the rows, with sensor noise."""
+    r, c = np.mgrid[0:rows, 0:cols]
+    return 128 + 60 * np.sin(2 * np.pi * (c + 0.3 * r) / period) + rng.normal(0, noise, (rows, cols))
+
+
+def _random_texture(rows, cols, rng):
+    """A random texture smoothed over about 2 px, as a cloudy wall's."""
+    import cv2
+
+    return cv2.GaussianBlur(rng.normal(128, 40, (rows, cols)), (0, 0), 2.0)
+
+
+def test_stripes_repeat_at_every_period_tried_and_a_random_texture_does_not():
+    rng = np.random.default_rng(0)
+    # (the windows of two halvings reach 4 x WINDOW_HALF columns, their shifts 4 x LEVEL_SHIFTS)
+    inner = (slice(4, -4), slice(4 * WINDOW_HALF, -4 * (WINDOW_HALF + LEVEL_SHIFTS)))
+    for period in (5, 11, 3 * LEVEL_SHIFTS):  # a fine period at full size, one at a halving, one at two
+        score = repeat_score(_stripes(64, 400, period, rng), 4 * LEVEL_SHIFTS)
+        assert (score[inner] >= REPEAT_ZNCC).mean() > 0.95, period
+    # not within the shifts tried: a period beyond the search's width misleads no match
+    score = repeat_score(_stripes(64, 400, 3 * LEVEL_SHIFTS, rng), LEVEL_SHIFTS)
+    assert (score[inner] >= REPEAT_ZNCC).mean() < 0.05
+    score = repeat_score(_random_texture(64, 400, rng), 4 * LEVEL_SHIFTS)
+    assert (score[inner] >= REPEAT_ZNCC).mean() < 0.02 and (score[inner] > -2).all()
+    assert ((score[inner] < ONCE_ZNCC)).mean() > 0.8  # anchors
+    score = repeat_score(np.full((64, 400), 90.0) + rng.normal(0, 1.0, (64, 400)), 64)
+    assert (score == -2).all()  # plain: neither
+
+
+def test_a_striped_patch_alone_is_dropped_and_one_on_a_textured_surface_kept():
+    rng = np.random.default_rng(1)
+    rows, cols = 80, 400
+    gray = _random_texture(rows, cols, rng)
+    gray[:, 200:] = _stripes(rows, 200, 9, rng)  # right half: stripes
+    disp = np.full((rows, cols), 20.0, np.float32)
+    disp[:40, 200:] = 29.0  # the stripes' top half a period off, a surface of its own
+    disp[:, 198:202] = -1.0  # (the jump between the halves: no cell joins them)
+    disp[40:, 198:202] = 20.0  # the bottom half joined to the textured surface
+    out = disp.copy()
+    n = drop_repeating(out, gray, 64, -1.0)
+    top, bottom = (slice(4, 36), slice(220, 360)), (slice(44, 76), slice(220, 360))
+    assert (out[top] == -1.0).mean() > 0.95  # dropped: repeats, no texture of its own
+    assert (out[bottom] == 20.0).all()  # kept: its surface is the random texture's
+    assert (out[:, :190] == 20.0).all()
+    assert n == np.count_nonzero((out == -1.0) & (disp != -1.0))
+    # the same with no repeat within the search: nothing dropped
+    out = disp.copy()
+    assert drop_repeating(out, gray, 4, -1.0) == 0 and (out == disp).all()
