@@ -23,7 +23,8 @@ def test_stripes_repeat_at_every_period_tried_and_a_random_texture_does_not():
     rng = np.random.default_rng(0)
     # (the windows of two halvings reach 4 x WINDOW_HALF columns, their shifts 4 x LEVEL_SHIFTS)
     inner = (slice(4, -4), slice(4 * WINDOW_HALF, -4 * (WINDOW_HALF + LEVEL_SHIFTS)))
-    for period in (5, 11, 3 * LEVEL_SHIFTS):  # a fine period at full size, one at a halving, one at two
+    # a fine period at full size, one found at the first halving (12 columns there), one at the second
+    for period in (5, 3 * LEVEL_SHIFTS // 2, 3 * LEVEL_SHIFTS):
         score = repeat_score(_stripes(64, 400, period, rng), 4 * LEVEL_SHIFTS)
         assert (score[inner] >= REPEAT_ZNCC).mean() > 0.95, period
     # not within the shifts tried: a period beyond the search's width misleads no match
