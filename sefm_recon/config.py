@@ -268,7 +268,6 @@ class SgmConfig:
     near_check: bool = True  #: drop estimates at the search's near end where the coarse pass found no surface that near
     coarse_check: bool = True  #: drop estimates far from the coarse pass's where that is sure (stripes a period off)
     repeat_check: bool = True  #: drop estimates on texture repeating along the lines where their surface has no other
-    repeat_check: bool = True  #: drop estimates on texture repeating along the lines where their surface has no other
     frame_check: bool = True  #: drop runs that match image 1's edge to image 2's across more than an occlusion's gap
     coarse_range: bool = True  #: without 8 SIFT inliers, search what a coarse pass finds (false: every depth)
     bicubic: bool = True  #: bicubic line images (false: bilinear)

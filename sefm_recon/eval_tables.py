@@ -65,8 +65,6 @@ SGM_ABLATIONS: dict[str, list[str]] = {
     "- estimates far from the coarse pass's, where that is sure, dropped": ["sgm.coarse_check=false"],
     "- estimates on texture repeating along the lines, on surfaces without other texture, dropped":
         ["sgm.repeat_check=false"],
-    "- estimates on texture repeating along the lines, on surfaces without other texture, dropped":
-        ["sgm.repeat_check=false"],
     "- estimates at the far end of cells image 2 sees at no nearer parallax dropped": ["sgm.far_check=false"],
     "- far end estimates on surfaces image 2 sees nowhere at every parallax dropped": ["sgm.far_surface_check=false"],
     "- estimates at the ends of the search dropped": ["sgm.end_check=false"],

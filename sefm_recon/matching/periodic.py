@@ -27,7 +27,7 @@ import cv2
 import numpy as np
 from numba import njit, prange
 
-from .surfaces import SAME_SURFACE_COLUMNS, _root, surface_forest
+from .surfaces import SAME_SURFACE_COLUMNS, surface_forest, surface_root
 
 __all__ = ["drop_repeating", "repeat_score"]
 
@@ -171,14 +171,14 @@ def _drop_repeating(disp, score, invalid, tol, repeat, once, share):
     anchors = np.zeros(n, np.int64)
     for i in range(n):
         if disp.flat[i] > invalid:
-            root = _root(parent, i)
+            root = surface_root(parent, i)
             total[root] += 1
             if -2.0 < score.flat[i] < once:
                 anchors[root] += 1
     dropped = 0
     for i in range(n):
         if disp.flat[i] > invalid and score.flat[i] >= repeat:
-            root = _root(parent, i)
+            root = surface_root(parent, i)
             if anchors[root] < share * total[root]:
                 disp.flat[i] = invalid
                 dropped += 1

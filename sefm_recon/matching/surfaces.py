@@ -20,7 +20,8 @@ from ..arrays import quiet_windows
 from ..io.images import to_gray
 from .stereo_sgbm import BLOCK
 
-__all__ = ["anchored_cells", "fit_plain_surfaces", "local_planes", "plain_windows", "surface_forest", "surface_median"]
+__all__ = ["anchored_cells", "fit_plain_surfaces", "local_planes", "plain_windows", "surface_forest", "surface_median",
+           "surface_root"]
 
 #: Neighbouring disparities within this many columns of the nearest cell's are on its
 #: surface and are interpolated with it; others (across a depth edge) are left out. One
@@ -93,7 +94,7 @@ PLAIN_FIT_SUPPORT = 0.3
 
 
 @njit(cache=True)
-def _root(parent, i):
+def surface_root(parent, i):
     """The root of ``i`` in the union-find forest ``parent``, halving the path on the way."""
     while parent[i] != i:
         parent[i] = parent[parent[i]]
@@ -115,7 +116,7 @@ def surface_forest(disp, invalid, tol):
             i = r * width + x
             for j, e in ((i + 1, x + 1 < width), (i + width, r + 1 < rows)):
                 if e and disp.flat[j] > invalid and abs(disp.flat[j] - d) <= tol:
-                    a, b = _root(parent, i), _root(parent, j)
+                    a, b = surface_root(parent, i), surface_root(parent, j)
                     if a != b:
                         parent[max(a, b)] = min(a, b)
     return parent
@@ -128,7 +129,7 @@ def anchored_cells(parent, anchor):
     root = np.empty(n, np.int32)
     anchored = np.zeros(n, np.bool_)
     for i in range(n):
-        root[i] = _root(parent, i)
+        root[i] = surface_root(parent, i)
         if anchor[i]:
             anchored[root[i]] = True
     out = np.empty(n, np.bool_)
