@@ -39,10 +39,10 @@ from .checks import (drop_carried_plain, drop_collisions, drop_fattened_cells, d
                      drop_occluded_plain, drop_outside_windows, drop_range_ends, drop_unanchored_far, drop_unseen_far,
                      flat_windows)
 from .lines import LineGrid, line_grid, line_images, pixel_grid
+from .periodic import drop_repeating
 from .planes import fill_planes
 from .readback import pixel_matches
 from .sefm import DenseMatches, depth_range
-from .periodic import drop_repeating
 from .stereo_sgbm import (BLOCK, JUMP_PENALTY, LR_MAX_DIFF, STEP_PENALTY, num_disparities, sgbm_disparity,
                           speckle_share_for, volume_fits)
 from .surfaces import (SAME_SURFACE_COLUMNS, anchored_cells, fit_plain_surfaces, plain_windows, surface_forest,
