@@ -278,6 +278,30 @@ def test_a_small_plain_region_takes_the_plane_of_its_rim():
     assert len(off.uv1) == 0 and len(off.moved) == 0
 
 
+def test_a_rim_whose_matches_scatter_up_to_two_px_about_its_plane_still_gives_it():
+    # a floor seen while moving forward: the rim's own matches lie 1.2-1.8 columns either side
+    # of the plane (none within 1 px), the region's matches on 40 % of it, scattered as SGM leaves
+    # them (its holes then more than the fill's least share, MIN_FILL_SHARE)
+    tv, gray, px, square = _small_square_scene()
+    rng = np.random.default_rng(8)
+    kept = ~square | (rng.random(len(px)) < 0.4)
+    side = rng.choice([-1.0, 1.0], len(px))
+    wave = np.where(square, side * rng.uniform(0.5, 1.5, len(px)), side * rng.uniform(1.2, 1.8, len(px)))[kept]
+    uv1, uv2, X, true2 = _slanted(tv, px[kept], wave)
+    fill = fill_planes(gray, (W, H), tv, uv1, uv2, X)
+    holes = {tuple(p) for p in px[square & ~kept][:, ::-1] + 0.5}
+    filled = {tuple(p) for p in fill.uv1}
+    # (beside the rim, a rim match 1.2-1.8 columns nearer than its plane may hide a hole in view 2)
+    assert filled <= holes and len(filled) > 0.5 * len(holes)
+    truth = fill.uv1 - np.column_stack([DISP + 0.04 * (fill.uv1[:, 0] - W / 2), np.zeros(len(fill.uv1))])
+    assert np.abs(fill.uv2 - truth).max() < 0.3  # the plane of the rim's scatter, not of its extremes
+    assert len(fill.moved) > 0 and np.abs(fill.moved_uv2 - true2[fill.moved]).max() < 0.3
+    # beyond 2 px (a rim along a depth edge, 2.5-3 columns apart): no plane, nothing filled
+    wave = np.where(square, 0.0, side * rng.uniform(2.5, 3.0, len(px)))[kept]
+    uv1, uv2, X, _ = _slanted(tv, px[kept], wave)
+    assert len(fill_planes(gray, (W, H), tv, uv1, uv2, X).uv1) == 0
+
+
 def test_a_small_region_on_its_rims_plane_with_its_own_signal_or_a_rim_on_two_surfaces_stays():
     tv, gray, px, square = _small_square_scene()
     # matches within 0.1 px of the plane (a surface SGM follows): they keep their own estimate
