@@ -296,7 +296,7 @@ def test_a_rim_whose_matches_scatter_up_to_two_px_about_its_plane_still_gives_it
     truth = fill.uv1 - np.column_stack([DISP + 0.04 * (fill.uv1[:, 0] - W / 2), np.zeros(len(fill.uv1))])
     assert np.abs(fill.uv2 - truth).max() < 0.3  # the plane of the rim's scatter, not of its extremes
     assert len(fill.moved) > 0 and np.abs(fill.moved_uv2 - true2[fill.moved]).max() < 0.3
-    # beyond 2 px (a rim along a depth edge, 2.5-3 columns apart): no plane, nothing filled
+    # the rim's matches 2.5-3 columns either side of it (beyond SGM's wave: no one plane): nothing filled
     wave = np.where(square, 0.0, side * rng.uniform(2.5, 3.0, len(px)))[kept]
     uv1, uv2, X, _ = _slanted(tv, px[kept], wave)
     assert len(fill_planes(gray, (W, H), tv, uv1, uv2, X).uv1) == 0
