@@ -94,7 +94,8 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--pairs", nargs="+", metavar="NAME", help="with --real: only these pairs (e.g. Cloth1 tsukuba)")
     ev.add_argument("--variants", nargs="+", choices=["rect", "unrect", "conv"], help="with --real: only these")
     ev.add_argument("--seeds", type=int, nargs="+", default=list(range(20)), metavar="SEED",
-                    help="generated scenes (default 0..19); the motions lateral, converging, forward and zoom in turn")
+                    help="generated scenes (default 0..19); the motions lateral, converging, forward and zoom "
+                         "in turn by the seed's number (seed mod 4)")
     ev.add_argument("--size", default="1000x750", metavar="WxH", help="generated image size")
     ev.add_argument("--style", choices=["random", "classic"], default="random",
                     help="generated scenes: randomised textures, photometry and motion, or the old textured "

@@ -43,7 +43,7 @@ METHODS = ("SeFM (true pose)", "SeFM (own pose)", "SGBM", "DIS")
 METRICS = ("precision@1", "precision@3", "coverage@1", "coverage@3")
 #: The issue's peer protocol: SGBM searches the ground truth's disparity range ± 8 px.
 SGBM_MARGIN_PX = 8.0
-#: Motion kinds of the generated table, taken in turn over the seeds.
+#: Motion kinds of the generated table, taken in turn by the seed's number (:func:`seed_motion`).
 MOTIONS = ("lateral", "converging", "forward", "zoom")
 
 #: Ablation rows of the default matcher (``dense.method = "sgm"``): each switches one stage
@@ -165,10 +165,18 @@ def generated_case(seed: int, size=(1000, 750), motion: str | None = None, style
     return GeneratedCase(str(seed), kind, scene.views[0], scene.views[1])
 
 
+def seed_motion(seed: int) -> str:
+    """The motion kind generated scene ``seed`` is evaluated with: the kinds of :data:`MOTIONS`
+    in turn by the seed's number, so that a seed is the same scene run alone as in any list
+    (by its place in the list, ``eval --seeds 35`` alone drew another scene than the table's
+    seed 35; the lists of the tables, each from a multiple of 4, are unchanged)."""
+    return MOTIONS[seed % len(MOTIONS)]
+
+
 def generated_cases(seeds, size=(1000, 750), style: str = "random"):
-    """:func:`generated_case` of each seed, the motion kinds taken in turn (random style)."""
-    for k, seed in enumerate(seeds):
-        yield generated_case(seed, size, MOTIONS[k % len(MOTIONS)] if style == "random" else None, style)
+    """:func:`generated_case` of each seed, with its motion kind (:func:`seed_motion`; random style)."""
+    for seed in seeds:
+        yield generated_case(seed, size, seed_motion(seed) if style == "random" else None, style)
 
 
 def _cameras(case):

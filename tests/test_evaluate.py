@@ -170,3 +170,14 @@ def test_sgbm_baseline(pair320):
     uv2s, uv1s = sgbm_matches(v2.image, v1.image, v2.K, v2.R, v2.t, v1.K, v1.R, v1.t, depth_range=zr)
     rs = evaluate_matches(uv1s, uv2s, v1, v2)
     assert rs["precision@3"] > 0.92
+
+
+def test_a_generated_seed_is_the_same_scene_alone_as_in_a_list():
+    from sefm_recon.eval_tables import generated_cases
+
+    alone = next(generated_cases([35], size=(160, 120)))
+    listed = list(generated_cases([34, 35], size=(160, 120)))[1]
+    assert alone.variant == listed.variant == "zoom"  # 35 mod 4: the fourth kind, as in the table of 20..39
+    assert np.array_equal(alone.img1, listed.img1) and np.array_equal(alone.img2, listed.img2)
+    assert [c.variant for c in generated_cases([20, 21, 22, 23], size=(160, 120))] == [
+        "lateral", "converging", "forward", "zoom"]
