@@ -155,28 +155,27 @@ class GeneratedCase:
         return scene_depth_range(self.view1, self.view2, margin=0.0)
 
 
+def seed_motion(seed: int) -> str:
+    """The motion kind generated scene ``seed`` is evaluated with: the kinds of :data:`MOTIONS`
+    in turn by the seed's number, so that a seed is the same scene run alone as in any list."""
+    return MOTIONS[seed % len(MOTIONS)]
+
+
 def generated_case(seed: int, size=(1000, 750), motion: str | None = None, style: str = "random") -> GeneratedCase:
-    """Render scene ``seed`` (two views) as an evaluation case."""
+    """Render scene ``seed`` (two views) as an evaluation case; random style: with ``motion``,
+    by default the seed's own (:func:`seed_motion`)."""
     from .synthetic import render_scene
 
-    kw = {"motion": motion} if style == "random" else {}
+    kw = {"motion": motion or seed_motion(seed)} if style == "random" else {}
     scene = render_scene(seed=seed, width=size[0], height=size[1], style=style, **kw)
     kind = scene.meta.get("options", {}).get("motion", "classic") if style == "random" else "classic"
     return GeneratedCase(str(seed), kind, scene.views[0], scene.views[1])
 
 
-def seed_motion(seed: int) -> str:
-    """The motion kind generated scene ``seed`` is evaluated with: the kinds of :data:`MOTIONS`
-    in turn by the seed's number, so that a seed is the same scene run alone as in any list
-    (by its place in the list, ``eval --seeds 35`` alone drew another scene than the table's
-    seed 35; the lists of the tables, each from a multiple of 4, are unchanged)."""
-    return MOTIONS[seed % len(MOTIONS)]
-
-
 def generated_cases(seeds, size=(1000, 750), style: str = "random"):
-    """:func:`generated_case` of each seed, with its motion kind (:func:`seed_motion`; random style)."""
+    """:func:`generated_case` of each seed, each with its motion kind (random style)."""
     for seed in seeds:
-        yield generated_case(seed, size, seed_motion(seed) if style == "random" else None, style)
+        yield generated_case(seed, size, style=style)
 
 
 def _cameras(case):

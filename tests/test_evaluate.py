@@ -173,9 +173,10 @@ def test_sgbm_baseline(pair320):
 
 
 def test_a_generated_seed_is_the_same_scene_alone_as_in_a_list():
-    from sefm_recon.eval_tables import generated_cases
+    from sefm_recon.eval_tables import generated_case, generated_cases
 
     alone = next(generated_cases([35], size=(160, 120)))
+    assert np.array_equal(generated_case(35, (160, 120)).img1, alone.img1)  # the helper alone, too
     listed = list(generated_cases([34, 35], size=(160, 120)))[1]
     assert alone.variant == listed.variant == "zoom"  # 35 mod 4: the fourth kind, as in the table of 20..39
     assert np.array_equal(alone.img1, listed.img1) and np.array_equal(alone.img2, listed.img2)
