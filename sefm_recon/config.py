@@ -262,6 +262,7 @@ class SgmConfig:
     collision_check: bool = True  #: of two surfaces' cells that reach one pixel of image 2, drop the one whose colour differs more
     occlusion_check: bool = True  #: drop the plain cells a nearer surface's run carries into the unmatched region on its occlusion side
     carried_check: bool = True  #: drop the plain cells of a farther surface's colour a nearer surface carries across a depth jump, up to its intensity edge
+    tone_match: bool = True  #: map image 2's tones onto image 1's, fitted to the coarse pass's matches (:mod:`.matching.tone`)
     near_range: bool = True  #: extend the SIFT range towards the camera where a coarse pass finds a surface beyond it
     far_check: bool = True  #: drop far end estimates of cells image 2 sees at no nearer parallax (unseen there)
     far_surface_check: bool = True  #: drop far end estimates on surfaces image 2 sees nowhere at every parallax (ties beyond its edge)

@@ -60,6 +60,7 @@ SGM_ABLATIONS: dict[str, list[str]] = {
     "- speckle window a share of the view (100 px alone)": ["sgm.speckle_share=false"],
     "- search range from the SIFT parallax (their depths x2 and /2)": ["sgm.sift_range=false"],
     "+ range margin of a quarter span (8 columns alone)": ["sgm.range_margin=0.25"],
+    "- image 2's tones matched to image 1's": ["sgm.tone_match=false"],
     "- range extended towards the camera by a coarse pass": ["sgm.near_range=false"],
     "- estimates at the near end without a coarse surface there dropped": ["sgm.near_check=false"],
     "- estimates far from the coarse pass's, where that is sure, dropped": ["sgm.coarse_check=false"],

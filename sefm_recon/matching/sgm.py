@@ -47,6 +47,7 @@ from .stereo_sgbm import (BLOCK, JUMP_PENALTY, LR_MAX_DIFF, STEP_PENALTY, num_di
                           speckle_share_for, volume_fits)
 from .surfaces import (SAME_SURFACE_COLUMNS, anchored_cells, fit_plain_surfaces, plain_windows, surface_forest,
                        surface_median)
+from .tone import apply_tone_curve, fit_tone_curve, matched_colours
 from .zncc import zncc
 
 logger = logging.getLogger(__name__)
@@ -536,6 +537,8 @@ class CoarseParallax:
     textured: np.ndarray  #: (rows, columns) bool: the cell's window is not plain (:func:`.surfaces.plain_windows`)
     step: float  #: full-size columns per coarse column
     grid: LineGrid | None = None  #: the coarse line images' grid (None: no place given, :func:`extend_near` alone)
+    #: the colours of the matched cells and their partners (:func:`.tone.matched_colours`), for the tone fit
+    colours: tuple[np.ndarray, np.ndarray] | None = None
 
     def _nearest(self, grid: LineGrid, rows: np.ndarray, cols: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The coarse row nearest each row (``rows``) and the coarse column nearest each column
@@ -600,7 +603,18 @@ def coarse_parallax(img1: np.ndarray, img2: np.ndarray, tv: TwoView, grid: LineG
         return None
     logger.info("coarse pass (1/%d size) over parallax %.0f..%.0f columns", factor, lo, hi)
     return CoarseParallax(np.where(found, disp * np.float32(to_fine), np.float32(np.nan)), ~plain_windows(L1), to_fine,
-                          gc)
+                          gc, matched_colours(L1, L2, disp, min_d))
+
+
+def match_tone(img2: np.ndarray, found: CoarseParallax) -> np.ndarray:
+    """``img2`` through the tone curve fitted to the coarse pass's matched colours
+    (:mod:`.tone`), where it is worth applying; else ``img2`` itself."""
+    curve = fit_tone_curve(*found.colours) if found.colours is not None else None
+    if curve is None or not curve.worth_applying:
+        return img2
+    logger.info("image 2's tones matched to image 1's (gain %s, power %s: %.1f levels on average)",
+                np.round(curve.gain, 3).tolist(), np.round(curve.power, 3).tolist(), curve.mean_shift)
+    return apply_tone_curve(img2, curve)
 
 
 def coarse_range(img1: np.ndarray, img2: np.ndarray, tv: TwoView, grid: LineGrid, cfg: Config,
@@ -753,6 +767,8 @@ def match_pair_sgm(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config,
         s_lo, near = sift_parallax_columns(tv, grid)
         nearest = parallax_columns(tv, grid, size1, (depth_range(tv, NEAR_DEPTH)[0],))[1]
         found = coarse_parallax(img1, img2, tv, grid, cfg, lo, max(hi, nearest + END_COLUMNS + 1))
+        if found is not None and opt.tone_match:
+            img2 = match_tone(img2, found)
         if found is not None and opt.near_range:
             s_hi, near = near, extend_near(near, found)
             if near > hi - END_COLUMNS - 1:  # beyond the margin the SIFT range is searched with
