@@ -3,8 +3,9 @@
 The paper's DP along one epipolar line (§4.4) is the single-path case of
 semi-global matching over the rows of the line images (:mod:`.lines`). Here OpenCV's
 StereoSGBM (:mod:`.stereo_sgbm`) aggregates the cost along several paths across
-neighbouring lines, with its Birchfield-Tomasi cost on gradient-prefiltered images
-(robust to gain and offset), a uniqueness test and sub-pixel interpolation. This module
+neighbouring lines, with its Birchfield-Tomasi cost on gradient-prefiltered images and
+raw values (image 2's tones matched to image 1's first where they differ, :mod:`.tone`), a
+uniqueness test and sub-pixel interpolation. This module
 sets the search range from the parallax of the pose's SIFT inliers (:func:`search_range`),
 extended towards the camera along the surfaces a coarse pass finds beyond them
 (:func:`extend_near`), chooses the jump penalty per pair (:func:`choose_jump_penalty`),

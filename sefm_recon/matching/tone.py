@@ -4,14 +4,16 @@ OpenCV's StereoSGBM (:mod:`.stereo_sgbm`) adds to the Birchfield-Tomasi differen
 x-gradient images that of the raw values, divided by 4. Where the photos differ in tone
 (exposure, white balance, tone curve) that second term is off at the true match, and on
 smooth shading, whose gradient term is flat along the ramp, it decides: the match slides
-along the ramp until the values agree (a shaded sphere of the generated scenes, whose views
-differ by up to a third of a stop and 10 % per channel, matched 4-6 px off), and the
-uniqueness test and the checks reject much of the rest. Image 2 is mapped through
+along the ramp until the values agree (Gaussian hills of shading seen with the generated
+scenes' kind of difference, up to a third of a stop and 10 % a channel: SGBM's matches a
+median 2-12 columns off, tests/test_tone.py), and the uniqueness test and the checks reject
+much of the rest (the generated scenes gained 0.05-0.07 of coverage at 1 px with the curve,
+docs/results.md "Image 2's tones matched to image 1's"). Image 2 is mapped through
 ``v1 = gain * v2 ** power`` per channel, fitted (:func:`fit_tone_curve`) to the colours at
 the coarse pass's matches (:func:`matched_colours`): tens of thousands of area-averaged
 cells on every surface the pass matched, where the SIFT inliers are a few hundred blob
 centres whose blurred values depend on the scale each view sees them at (on the real pairs
-their fit was 3-18 levels off the curve the ground truth gives, the coarse pass's 0.3-3).
+their fit was 2-19 levels off the curve the ground truth gives, the coarse pass's 0.3-3).
 """
 
 from __future__ import annotations
