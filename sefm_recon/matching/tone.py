@@ -5,7 +5,7 @@ x-gradient images that of the raw values, divided by 4. Where the photos differ 
 (exposure, white balance, tone curve) that second term is off at the true match, and on
 smooth shading, whose gradient term is flat along the ramp, it decides: the match slides
 along the ramp until the values agree (Gaussian hills of shading seen with the generated
-scenes' kind of difference, up to a third of a stop and 10 % a channel: SGBM's matches a
+scenes' kind of difference, exposure 0.75-1.25 and 10 % a channel each view: SGBM's matches a
 median 2-12 columns off, tests/test_tone.py), and the uniqueness test and the checks reject
 much of the rest (the generated scenes gained 0.05-0.07 of coverage at 1 px with the curve,
 docs/results.md "Image 2's tones matched to image 1's"). Image 2 is mapped through
@@ -35,7 +35,7 @@ MIN_SAMPLES = 200
 #: The curve is applied only where it moves image 2's values by at least this many levels on
 #: average over the samples: SGBM divides its raw-value difference by 4, so a smaller shift
 #: costs nearly nothing, while any remap moves the 8-bit steps on which plain walls are
-#: matched (the real pairs, whose views share one exposure: 0.1-2.0 levels; remapped,
+#: matched (the real pairs but Monopoly: 0.1-2.0 levels; remapped,
 #: Midd1 conv lost 0.073 and Midd2 unrect 0.080 of coverage at 1 px). Monopoly's pair
 #: differs by 6.7 levels, the generated scenes by 2.7-30.
 MIN_MEAN_SHIFT = 4.0
