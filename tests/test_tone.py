@@ -8,7 +8,7 @@ from sefm_recon.matching.stereo_sgbm import sgbm_disparity
 from sefm_recon.matching.tone import (MIN_MEAN_SHIFT, ToneCurve, apply_tone_curve, fit_tone_curve,
                                       matched_colours)
 
-#: image 2 = gain * scene ** power per channel: a third of a stop darker, white balance and tone curve apart
+#: image 2 = gain * scene ** power per channel: about 0.4 of a stop darker, white balance and tone curve apart
 TONES = ((0.75, 1.04), (0.8, 1.03), (0.7, 1.05))
 
 
@@ -20,12 +20,14 @@ def _toned(values, tones=TONES):
     return np.stack([g * values ** k for g, k in tones], axis=-1)
 
 
+def _samples(rng, n=5000):
+    """Matched colours (v1, v2), (n, 3) uint8 each: scene values 20..240, image 2 through TONES."""
+    scene = rng.uniform(20, 240, n)
+    return _noisy_u8(np.stack([scene] * 3, axis=-1), rng), _noisy_u8(_toned(scene), rng)
+
+
 def test_the_fit_recovers_a_gain_and_power_per_channel_within_a_level():
-    rng = np.random.default_rng(0)
-    scene = rng.uniform(20, 240, 5000)
-    v1 = _noisy_u8(np.stack([scene] * 3, axis=-1), rng)
-    v2 = _noisy_u8(_toned(scene), rng)
-    curve = fit_tone_curve(v1, v2)
+    curve = fit_tone_curve(*_samples(np.random.default_rng(0)))
     x = np.arange(20, 180.0)  # image 2's values of the scene's 20..240 (or below)
     for c, (g, k) in enumerate(TONES):
         inverse = (x / g) ** (1.0 / k)  # the value image 1 has where image 2 has x
@@ -36,9 +38,7 @@ def test_the_fit_recovers_a_gain_and_power_per_channel_within_a_level():
 
 def test_wrong_partners_among_the_samples_move_the_fit_little():
     rng = np.random.default_rng(1)
-    scene = rng.uniform(20, 240, 5000)
-    v1 = _noisy_u8(np.stack([scene] * 3, axis=-1), rng)
-    v2 = _noisy_u8(_toned(scene), rng)
+    v1, v2 = _samples(rng)
     clean = fit_tone_curve(v1, v2)
     wrong = rng.random(len(v2)) < 0.1  # a tenth matched to some other colour
     v2[wrong] = rng.integers(0, 256, (int(wrong.sum()), 3))
@@ -95,19 +95,18 @@ def test_sgm_on_smooth_shading_finds_the_true_disparity_once_the_tones_match(sig
     yy, xx = np.mgrid[0:h, 0:w + d].astype(np.float64)
     scene = 50 + sum(150 * np.exp(-((xx - cx) ** 2 + (yy - cy) ** 2) / (2 * sigma**2))
                      for cx, cy in ((100, 60), (250, 110), (340, 40)))
-    L1 = np.dstack([_noisy_u8(scene[:, :w], rng)] * 3)
-    L2 = _noisy_u8(_toned(scene[:, d:]), rng)  # L2[x - 12] = L1[x]
+    # line images as SGM gets them: a pad left of both, for the search window of the first columns
+    L1, L2 = (cv2.copyMakeBorder(a, 0, 0, pad, 0, cv2.BORDER_REPLICATE) for a in (
+        np.dstack([_noisy_u8(scene[:, :w], rng)] * 3), _noisy_u8(_toned(scene[:, d:]), rng)))  # L2[x - 12] = L1[x]
 
-    def within_a_column(A, B):
-        padded = [cv2.copyMakeBorder(a, 0, 0, pad, 0, cv2.BORDER_REPLICATE) for a in (A, B)]
-        disp = sgbm_disparity(*padded, 0, 32, 10)[0][:, pad:]
+    def within_a_column(B):
+        disp = sgbm_disparity(L1, B, 0, 32, 10)[0][:, pad:]
         found = disp >= 0
         return np.mean(np.abs(disp[found] - d) <= 1.0)
 
     truth = np.full((h, w + pad), d, np.float32)
     truth[:, :pad + d] = -1.0
-    curve = fit_tone_curve(*matched_colours(*(cv2.copyMakeBorder(a, 0, 0, pad, 0, cv2.BORDER_REPLICATE)
-                                              for a in (L1, L2)), truth, 0))
+    curve = fit_tone_curve(*matched_colours(L1, L2, truth, 0))
     assert curve.worth_applying
-    assert within_a_column(L1, L2) < 0.3
-    assert within_a_column(L1, apply_tone_curve(L2, curve)) > 0.85
+    assert within_a_column(L2) < 0.3
+    assert within_a_column(apply_tone_curve(L2, curve)) > 0.85
