@@ -276,6 +276,9 @@ class SgmConfig:
     median: bool = True  #: smooth the disparities by a 5x5 median on their surface (false: as SGM leaves them)
     slanted_median: bool = True  #: on a window's sloping plane, the median about that plane (false: the plain one)
     plain_fit: bool = True  #: on plain windows, each disparity from its surface's local plane (false: the median's)
+    #: plain cells 1-2 columns off their 25x25 window's plane onto it where it matches as well
+    #: (:func:`.matching.surfaces.fit_wide_planes`)
+    wide_fit: bool = True
     planes: bool = True  #: fill large plain regions whose matches lie on one plane (:mod:`.matching.planes`)
     plane_snap: bool = True  #: move the matches without signal of large plain regions that are one plane onto it (:mod:`.matching.planes`)
     scattered_check: bool = True  #: drop the matches of large plain regions mostly unmatched whose matches lie on no one plane (:mod:`.matching.planes`)

@@ -82,6 +82,7 @@ SGM_ABLATIONS: dict[str, list[str]] = {
     "- median over each surface": ["sgm.median=false"],
     "- median about the window's plane where it lies on one (the plain median)": ["sgm.slanted_median=false"],
     "- plane fit on plain windows": ["sgm.plain_fit=false"],
+    "- wide plane fit on plain windows": ["sgm.wide_fit=false"],
     "- holes of plain planes filled": ["sgm.planes=false"],
     "- matches without signal on plain planes moved onto them": ["sgm.plane_snap=false"],
     "- matches of plain regions mostly unmatched and on no one plane dropped": ["sgm.scattered_check=false"],

@@ -157,3 +157,73 @@ def test_the_plane_fit_equals_least_squares_cell_by_cell():
             expected[i, j] = np.linalg.lstsq(A, d[on], rcond=None)[0][0]
     assert (out != disp).sum() > 300  # most plain cells moved
     np.testing.assert_allclose(out, expected, atol=1e-4)
+
+
+def _line_images(truth: np.ndarray, shift: int = 5) -> tuple[np.ndarray, np.ndarray]:
+    """Grey line images of a weak texture in which cell (r, c) of image 1 is seen at column
+    c - (truth[r, c] - shift) of image 2 (image 2 shifted by ``shift`` columns, as SGM takes it)."""
+    rows, cols = truth.shape
+
+    def texture(r, x):  # smooth, a few grey levels a cell: a weak texture
+        return 120.0 + 20.0 * np.sin(x / 3.1 + 0.7 * r) + 12.0 * np.sin(x / 1.7 - 0.4 * r)
+
+    r, c = np.mgrid[0:rows, 0:cols].astype(np.float64)
+    g1 = texture(r, c)
+    # image 2's column x shows what image 1 shows at the column whose match lands there
+    # (the disparities vary slowly, so each row's inverse comes from interpolation)
+    g2 = np.empty_like(g1)
+    for i in range(rows):
+        g2[i] = texture(i, np.interp(c[i], c[i] - (truth[i] - shift), c[i]))
+    return np.round(g1).astype(np.uint8), np.round(g2).astype(np.uint8)
+
+
+def test_the_wide_plane_fit_takes_streaks_onto_their_plane():
+    # SGM's streaks on a plain surface: runs along the lines a few rows tall, 1.5 columns
+    # off either way; the wide window's plane matches there as well as the streak's value
+    from sefm_recon.matching.surfaces import WIDE_FIT_MOVE, fit_wide_planes
+
+    rng = np.random.default_rng(7)
+    rows, cols = 80, 160
+    r, c = np.mgrid[0:rows, 0:cols].astype(np.float64)
+    truth = (30.0 + 0.3 * r + 0.05 * c).astype(np.float32)  # a floor sloping across the lines
+    g1, g2 = _line_images(truth)
+    disp = truth.copy()
+    for _ in range(40):  # over a fifth of the cells, about a column root mean square
+        i, j = rng.integers(0, rows - 3), rng.integers(0, cols - 30)
+        disp[i:i + 3, j:j + 30] = truth[i:i + 3, j:j + 30] + rng.choice([-1.5, 1.5])
+    disp[40:44, 70:80] = -1.0  # a hole stays a hole
+    plain = np.ones((rows, cols), bool)
+    plain[:, 140:] = False  # a textured band keeps its estimates
+    out = disp.copy()
+    moved = fit_wide_planes(out, plain, g1, g2, 5, -0.5)
+    inner = (slice(12, rows - 12), slice(14, 126))  # (columns: the texture's windows inside image 2 too)
+    off = np.abs(disp - truth)[inner] > 1.0
+    assert moved > 0 and off.mean() > 0.2
+    assert (np.abs(out - truth)[inner] > 1.0).mean() < 0.15 * off.mean()  # (where streaks crowd, the RMS gate holds)
+    assert (out[40:44, 70:80] == -1.0).all()
+    assert (out[:, 140:] == disp[:, 140:]).all()
+    assert WIDE_FIT_MOVE[1] >= 1.5  # the streaks lie within the moves
+
+
+def test_the_wide_plane_fit_keeps_a_relief_the_images_carry_and_gross_errors():
+    from sefm_recon.matching.surfaces import WIDE_FIT_MOVE, fit_wide_planes
+
+    rows, cols = 60, 120
+    r, c = np.mgrid[0:rows, 0:cols].astype(np.float64)
+    # a bump of 1.6 columns on a plane: its top lies 1-2 columns off the wide window's plane
+    bump = 1.6 * np.exp(-((r - 30) ** 2 + (c - 60) ** 2) / (2 * 4.0**2))
+    truth = (30.0 + 0.1 * r + bump).astype(np.float32)
+    g1, g2 = _line_images(truth)
+    disp = truth.copy()
+    disp[10:13, 20:50] += 3.0  # a gross error, beyond the moves: another surface's
+    assert WIDE_FIT_MOVE[1] < 3.0
+    plain = np.ones((rows, cols), bool)
+    out = disp.copy()
+    fit_wide_planes(out, plain, g1, g2, 5, -0.5)
+    assert (out[25:36, 55:66] == disp[25:36, 55:66]).all()  # the relief matches better than the plane
+    assert (out[10:13, 20:50] == disp[10:13, 20:50]).all()
+    # without the images' say (image 2 blank: every window matches alike) the bump would move
+    flat = np.full_like(g2, 120)
+    out2 = disp.copy()
+    fit_wide_planes(out2, plain, np.full_like(g1, 120), flat, 5, -0.5)
+    assert (out2[25:36, 55:66] != disp[25:36, 55:66]).any()

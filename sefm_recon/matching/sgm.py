@@ -46,8 +46,8 @@ from .readback import pixel_matches
 from .sefm import DenseMatches, depth_range
 from .stereo_sgbm import (BLOCK, JUMP_PENALTY, LR_MAX_DIFF, STEP_PENALTY, num_disparities, sgbm_disparity,
                           speckle_share_for, volume_fits)
-from .surfaces import (SAME_SURFACE_COLUMNS, anchored_cells, fit_plain_surfaces, plain_windows, surface_forest,
-                       surface_median)
+from .surfaces import (SAME_SURFACE_COLUMNS, anchored_cells, fit_plain_surfaces, fit_wide_planes, plain_windows,
+                       surface_forest, surface_median)
 from .tone import apply_tone_curve, fit_tone_curve, matched_colours
 from .zncc import zncc
 
@@ -812,10 +812,11 @@ def match_pair_sgm(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config,
     n_flat = drop_flat_windows(disp, L1, min_d - 1.0) if opt.flat_check else 0
     n_out = drop_outside_windows(disp, span2, min_d, min_d - 1.0) if opt.outside_check else 0
     n_col = drop_collisions(disp, L1, L2, min_d, min_d - 1.0) if opt.collision_check else 0
-    plain = plain_windows(L1) if opt.plain_fit or opt.occlusion_check or opt.carried_check else None
+    plain = plain_windows(L1) if opt.plain_fit or opt.wide_fit or opt.occlusion_check or opt.carried_check else None
     n_occ = drop_occluded_plain(disp, L1, plain, span2, min_d, min_d - 1.0) if opt.occlusion_check else 0
     n_car = drop_carried_plain(disp, L1, plain, min_d - 1.0) if opt.carried_check else 0
-    gray1 = to_gray(L1) if opt.repeat_check else None
+    gray1 = to_gray(L1) if opt.repeat_check or opt.wide_fit else None
+    gray2 = to_gray(L2) if opt.wide_fit else None
     del L1, L2
     far_end, near_end = lo + END_COLUMNS + 1, hi - END_COLUMNS - 1  # the range within its end columns
     n_far = drop_unseen_far(disp, span2, min_d, far_end, min_d - 1.0) if opt.far_check else 0
@@ -827,13 +828,13 @@ def match_pair_sgm(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config,
         n_near = drop_unsupported_near(disp, grid, found, near, near_end, min_d - 1.0)
     n_coarse = drop_off_coarse(disp, grid, found, min_d - 1.0) if found is not None and opt.coarse_check else 0
     n_rep = drop_repeating(disp, gray1, num_d, min_d - 1.0) if opt.repeat_check else 0
-    del gray1
     n_frame = drop_frame_end_runs(disp, frames, min_d, min_d - 1.0) if opt.frame_check else 0
     n_fat = drop_fattened_cells(disp, min_d - 1.0) if opt.edge_check else 0
     if opt.median:
         surface_median(disp, min_d - 1.0, slanted=opt.slanted_median)
     n_fit = fit_plain_surfaces(disp, plain, min_d - 1.0) if opt.plain_fit else 0
-    del plain
+    n_wide = fit_wide_planes(disp, plain, gray1, gray2, min_d, min_d - 1.0) if opt.wide_fit else 0
+    del plain, gray1, gray2
     n_dense = int(np.count_nonzero(disp >= min_d))
     # leading slices of pixel-sized arrays, so that the plane fill's matches (unmatched
     # pixels of image 1) append without copying the millions found (a few tenths of a
@@ -875,11 +876,11 @@ def match_pair_sgm(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config,
                 "%d far where image 2 sees no nearer parallax or on a surface it sees nowhere at every one, %d near "
                 "without a coarse surface there, %d far from the coarse pass's sure estimates, %d on texture repeating "
                 "along the lines on surfaces without other texture, %d in runs matching image 1's edge to image 2's "
-                "and %d fattened at depth edges dropped), %d on plain windows fitted "
-                "to their surface's plane, %d filled on plain planes and %d moved onto them, %d on plain regions "
-                "mostly unmatched and on no one plane (or off theirs on no second one) dropped, %d valid",
+                "and %d fattened at depth edges dropped), %d on plain windows fitted to their surface's plane "
+                "and %d moved onto a wider window's plane, %d filled on plain planes and %d moved onto them, %d on "
+                "plain regions mostly unmatched and on no one plane (or off theirs on no second one) dropped, %d valid",
                 "4 full paths" if full else "3 directions", counts["line_pairs"], n_dense, n_half, n_off, n_lr, n_ends,
-                n_flat, n_out, n_col, n_occ, n_car, n_far, n_near, n_coarse, n_rep, n_frame, n_fat, n_fit, n_planes,
-                n_moved, n_scattered, len(uv1))
+                n_flat, n_out, n_col, n_occ, n_car, n_far, n_near, n_coarse, n_rep, n_frame, n_fat, n_fit, n_wide,
+                n_planes, n_moved, n_scattered, len(uv1))
     return DenseMatches(uv1, uv2, score, rows, X, counts, timings)
 

@@ -20,8 +20,8 @@ from ..arrays import quiet_windows
 from ..io.images import to_gray
 from .stereo_sgbm import BLOCK
 
-__all__ = ["anchored_cells", "fit_plain_surfaces", "local_planes", "plain_windows", "surface_forest", "surface_median",
-           "surface_root"]
+__all__ = ["anchored_cells", "fit_plain_surfaces", "fit_wide_planes", "local_planes", "plain_windows", "surface_forest",
+           "surface_median", "surface_root"]
 
 #: Neighbouring disparities within this many columns of the nearest cell's are on its
 #: surface and are interpolated with it; others (across a depth edge) are left out. One
@@ -91,6 +91,23 @@ PLAIN_FIT_HALF = 4
 #: meets a depth edge or a hole at the cell still holds; fewer cells would fix a plane on a
 #: sliver.
 PLAIN_FIT_SUPPORT = 0.3
+
+
+#: SGM's errors on a plain surface run in streaks along the lines, 20-40 cells long and a few
+#: rows tall, 1-3 columns off and centred on the surface (a generated floor of weak texture,
+#: seed 13): longer than the plane fit's window, which takes a streak for the surface. Plain
+#: cells are tried on the plane of a window this many cells each side (25 x 25 cells), where
+#: the streaks of several rows average out.
+WIDE_FIT_HALF = 12
+#: ...where the window's estimates lie within this many columns (root mean square) of that
+#: plane: the streaks' scatter (about a column) and no more; a step of 4 columns in the
+#: window, or a surface curved by more, leaves more.
+WIDE_FIT_RMS = 1.0
+#: ...and only cells this many columns off the plane: one column, the precision a match is
+#: judged at, up to two, where beyond a cell is another surface's (or a gross error, not a
+#: streak). Cells within a column stay: on a curved surface the plane's own error is of that
+#: order, and the matching cost cannot tell such shifts apart from its noise.
+WIDE_FIT_MOVE = (1.0, 2.0)
 
 
 @njit(cache=True)
@@ -380,3 +397,72 @@ def _fit_plain(disp, todo, whole, invalid, half, tol, need):
             if n >= need:
                 out[r, c] = _plane_at_cell(float(n), su, sv, sd, suu, svv, suv, sud, svd, d0)
     return out
+
+
+def fit_wide_planes(disp: np.ndarray, plain: np.ndarray, gray1: np.ndarray, gray2: np.ndarray, shift: int,
+                    invalid: float) -> int:
+    """Move each valid disparity of ``disp`` (rows, columns) float32 on a ``plain`` cell
+    (:func:`plain_windows`), in place, onto the least-squares plane of its (2
+    :data:`WIDE_FIT_HALF` + 1)-cell window where that window lies on one plane
+    (:data:`WIDE_FIT_RMS`), the cell is :data:`WIDE_FIT_MOVE` columns off it, and the plane's
+    disparity matches image 2 at least as well as the cell's own: the sum of squared
+    differences of the grey values, less their means, over the :data:`.stereo_sgbm.BLOCK`
+    square windows (``gray1``, ``gray2``: the (rows, columns) uint8 grey line images, image
+    2's shifted by ``shift`` columns as SGM took it). Returns how many moved.
+
+    A streak's cells move: its cost is as low on the plane as at SGM's winner, set there by
+    the smoothness penalties. A relief the plane rounds off keeps its estimates: its windows
+    match worse on the plane.
+    """
+    lo, hi = WIDE_FIT_MOVE
+    plane, rms, _ = local_planes(disp, invalid, WIDE_FIT_HALF)
+    off = cv2.absdiff(disp, plane)
+    todo = plain & (disp > invalid) & (rms <= WIDE_FIT_RMS) & (off >= lo) & (off <= hi)
+    rows, cols = np.nonzero(todo)
+    better = _matches_better(gray1, gray2, rows, cols, disp, plane, float(shift), BLOCK // 2)
+    rows, cols = rows[better], cols[better]
+    disp[rows, cols] = plane[rows, cols]
+    return len(rows)
+
+
+@njit(parallel=True, cache=True)
+def _matches_better(g1, g2, rows, cols, disp, plane, shift, half):
+    """(n,) bool: whether the cells ``rows``, ``cols`` match image 2 at least as well at
+    ``plane`` as at ``disp`` (zero-mean sums of squared differences over the (2 ``half`` + 1)
+    square windows, image 2 read between columns linearly); False where a window leaves
+    either line image."""
+    n = len(rows)
+    out = np.zeros(n, np.bool_)
+    h, w = g1.shape
+    for k in prange(n):
+        r, c = rows[k], cols[k]
+        if r < half or r >= h - half or c < half or c >= w - half:
+            continue
+        own = _zssd(g1, g2, r, c, disp[r, c] - shift, half)
+        on = _zssd(g1, g2, r, c, plane[r, c] - shift, half)
+        out[k] = on <= own
+    return out
+
+
+@njit(cache=True)
+def _zssd(g1, g2, r, c, d, half):
+    """The zero-mean sum of squared differences between ``g1``'s window about (``r``, ``c``)
+    and ``g2``'s about (``r``, ``c - d``), read linearly between columns; infinity where that
+    leaves ``g2``."""
+    x = c - d
+    j = int(math.floor(x))
+    f = x - j
+    if j - half < 0 or j + half + 1 >= g2.shape[1]:
+        return np.inf
+    sa = sb = saa = sbb = sab = 0.0
+    for dr in range(-half, half + 1):
+        for dc in range(-half, half + 1):
+            a = float(g1[r + dr, c + dc])
+            b = (1.0 - f) * g2[r + dr, j + dc] + f * g2[r + dr, j + dc + 1]
+            sa += a
+            sb += b
+            saa += a * a
+            sbb += b * b
+            sab += a * b
+    m = float((2 * half + 1) ** 2)
+    return (saa - sa * sa / m) + (sbb - sb * sb / m) - 2.0 * (sab - sa * sb / m)
