@@ -4,8 +4,10 @@ A 5x5 median over each surface, about the window's plane where it lies on one
 (:func:`surface_median`, :func:`local_planes`), and on plain windows (:func:`plain_windows`)
 each disparity from its surface's local plane (:func:`fit_plain_surfaces`): on plain
 windows SGM's winner is set by its smoothness penalties, a slanted plain surface comes out
-as a staircase. ``disp`` is (rows, columns) float32 parallax in columns, invalid at or
-below ``invalid``; each function changes it in place.
+as a staircase. Plain cells a column or two off a wider window's plane move onto it where
+it matches image 2 as well (:func:`fit_wide_planes`): SGM's streaks along the lines are
+longer than the local fit's window. ``disp`` is (rows, columns) float32 parallax in
+columns, invalid at or below ``invalid``; each function changes it in place.
 """
 
 from __future__ import annotations
