@@ -812,10 +812,10 @@ def match_pair_sgm(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config,
     n_flat = drop_flat_windows(disp, L1, min_d - 1.0) if opt.flat_check else 0
     n_out = drop_outside_windows(disp, span2, min_d, min_d - 1.0) if opt.outside_check else 0
     n_col = drop_collisions(disp, L1, L2, min_d, min_d - 1.0) if opt.collision_check else 0
-    plain = plain_windows(L1) if opt.plain_fit or opt.wide_fit or opt.occlusion_check or opt.carried_check else None
+    gray1 = to_gray(L1)  # once, for the plain windows, the repeat check and the wide fit
+    plain = plain_windows(gray1) if opt.plain_fit or opt.wide_fit or opt.occlusion_check or opt.carried_check else None
     n_occ = drop_occluded_plain(disp, L1, plain, span2, min_d, min_d - 1.0) if opt.occlusion_check else 0
     n_car = drop_carried_plain(disp, L1, plain, min_d - 1.0) if opt.carried_check else 0
-    gray1 = to_gray(L1) if opt.repeat_check or opt.wide_fit else None
     gray2 = to_gray(L2) if opt.wide_fit else None
     del L1, L2
     far_end, near_end = lo + END_COLUMNS + 1, hi - END_COLUMNS - 1  # the range within its end columns

@@ -289,8 +289,9 @@ def _add_row(C, disp, rr, invalid, sign):
 
 
 def plain_windows(L1: np.ndarray) -> np.ndarray:
-    """(rows, width) bool: the cells of line image 1 whose :data:`.stereo_sgbm.BLOCK` square window has a
-    grey-value standard deviation below :data:`PLAIN_LEVELS` (:func:`fit_plain_surfaces`)."""
+    """(rows, width) bool: the cells of line image 1 (colour, or its grey values) whose
+    :data:`.stereo_sgbm.BLOCK` square window has a grey-value standard deviation below
+    :data:`PLAIN_LEVELS` (:func:`fit_plain_surfaces`)."""
     return quiet_windows(to_gray(L1), BLOCK, PLAIN_LEVELS)
 
 
