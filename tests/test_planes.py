@@ -133,7 +133,8 @@ def test_a_mostly_unmatched_regions_matches_off_its_plane_go_unless_they_are_a_s
     """A third of the plain square matched: 80 % on one plane, the rest in 8 px patches at
     three other depths drawn at random (a third of them on any one plane): those are dropped,
     the plane's stay, and the patches' pixels are filled from the plane. The same rest on one
-    second plane (a second surface in the region) stays, as it does with ``drop=False``. With
+    second plane (a second surface in the region) stays, as it does with ``drop=False``; on a
+    plane 1.5 px off the first (SGM's wave about the surface, not a second one) it goes. With
     the patches 45 % of the matches, they go too, but the plane fills nothing: its support is
     judged on every match of the region (55 %, under the fill's 60 %)."""
     tv, gray = _scene()
@@ -154,6 +155,9 @@ def test_a_mostly_unmatched_regions_matches_off_its_plane_go_unless_they_are_a_s
     assert len(fill_planes(gray, (W, H), tv, *patches, drop=False).dropped) == 0
     second = [np.concatenate(a) for a in zip(_matches(tv, some[~off]), _matches(tv, some[off], disp=DISP + 4))]
     assert len(fill_planes(gray, (W, H), tv, *second).dropped) == 0
+    wave = [np.concatenate(a) for a in zip(_matches(tv, some[~off]), _matches(tv, some[off], disp=DISP + 1.5))]
+    out = fill_planes(gray, (W, H), tv, *wave)
+    np.testing.assert_array_equal(np.sort(out.dropped), np.arange(n_on, len(some)))
     off = cell[some[:, 0] // 8, some[:, 1] // 8] < 0.45
     parts = [_matches(tv, some[~off])] + [_matches(tv, some[off & (depth == b)], disp=DISP + 4 * b) for b in (1, 2, 3)]
     assert 0.4 < np.mean(off) < 0.5
