@@ -198,7 +198,8 @@ def calibrated_ransac(cam1: pycolmap.Camera, xy1: np.ndarray, cam2: pycolmap.Cam
     opts.min_num_inliers = int(min_num_inliers)
     opts.detect_watermark = False
     if not planar:
-        opts.max_H_inlier_ratio = 1.0  # (COLMAP's bound: a homography holding more inliers than E)
+        # the most COLMAP allows: planar only where a homography holds more inliers than E
+        opts.max_H_inlier_ratio = 1.0
     matches = np.stack([np.arange(len(xy1)), np.arange(len(xy1))], 1).astype(np.uint32)
     return pycolmap.estimate_calibrated_two_view_geometry(
         cam1, np.ascontiguousarray(xy1, np.float64), cam2, np.ascontiguousarray(xy2, np.float64), matches, opts)
