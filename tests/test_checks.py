@@ -271,3 +271,12 @@ def test_far_end_surfaces_that_image_2_sees_nowhere_at_every_parallax_are_droppe
     # ... but not across a step of more than a column
     disp[:, 50:70] += 1.5
     assert drop_unanchored_far(disp, span2, shift, end, near, -1.0) == rows * 50
+    # ... nor through ties (within a column of the first disparity, `shift`): a patch joined to
+    # cells image 2 sees at every parallax only through ties goes, with the ties it does not see
+    disp = np.full((rows, width), -1.0, np.float32)
+    disp[:, :30] = 11.8
+    disp[:, 30:70] = 10.9  # ties, within SAME_SURFACE_COLUMNS of the patch and of the cells after
+    disp[:, 70:100] = 11.8
+    before = disp.copy()
+    assert drop_unanchored_far(disp, span2, shift, end, near, -1.0) == rows * 67
+    assert (disp[:, :67] == -1.0).all() and (disp[:, 67:] == before[:, 67:]).all()
