@@ -320,8 +320,8 @@ def _drop_unanchored(disp, first, end, invalid, tol, tie):
     for r in range(rows):
         for x in range(first[r], width):
             anchor[r * width + x] = disp[r, x] >= tie
-    joined = np.where(disp < tie, np.float32(invalid), disp)  # the surfaces, joined through no tie
-    anchored = anchored_cells(surface_forest(joined, invalid, tol), anchor)
+    # the surfaces, joined through no tie: the forest of the cells at or above `tie`
+    anchored = anchored_cells(surface_forest(disp, np.nextafter(tie, -np.inf), tol), anchor)
     count = 0
     for r in range(rows):
         for x in range(first[r]):
