@@ -11,10 +11,14 @@ def finite_rows(*arrays: np.ndarray) -> np.ndarray:
 
     A row's sum is finite exactly when all its entries are; summing by a
     matrix-vector product is several times faster than ``isfinite().all(1)``
-    on millions of short rows.
+    on millions of short rows. Where each array's sum is finite, so is every
+    entry, and the rows are not summed (a sixth of the time on the bench
+    pair's 2.6 million matches).
     """
-    total = np.zeros(len(arrays[0]))
     with np.errstate(invalid="ignore", over="ignore"):  # inf - inf and overflow: non-finite, as meant
+        if all(np.isfinite(np.sum(a)) for a in arrays):
+            return np.ones(len(arrays[0]), bool)
+        total = np.zeros(len(arrays[0]))
         for a in arrays:
             total += np.asarray(a, np.float64) @ np.ones(a.shape[1])
     return np.isfinite(total)

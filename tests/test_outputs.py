@@ -289,6 +289,10 @@ def test_finite_rows_flags_any_non_finite_entry():
     a[4] = [np.inf, -np.inf, 0.0]  # opposite infinities must not cancel
     np.testing.assert_array_equal(finite_rows(a, b), [True, False, False, False, False, True])
     np.testing.assert_array_equal(finite_rows(b), [True, True, True, False, True, True])
+    c = np.ones((4, 2), np.float32)  # every entry finite: every row, however they are summed
+    np.testing.assert_array_equal(finite_rows(c, np.zeros((4, 3))), [True] * 4)
+    c[2, 0] = np.nan
+    np.testing.assert_array_equal(finite_rows(c, np.zeros((4, 3))), [True, True, False, True])
 
 
 def test_sample_colors_equal_the_corner_weights_everywhere():
