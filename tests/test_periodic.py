@@ -1,5 +1,6 @@
 """Estimates on texture that repeats along the lines (:mod:`sefm_recon.matching.periodic`)."""
 
+import cv2
 import numpy as np
 
 from sefm_recon.matching.periodic import (LEVEL_SHIFTS, ONCE_ZNCC, REPEAT_ZNCC, WINDOW_HALF, drop_repeating,
@@ -37,6 +38,38 @@ def test_stripes_repeat_at_every_period_tried_and_a_random_texture_does_not():
     assert (score == -2).all()  # plain: neither
 
 
+def _colour(grey, chroma):
+    """RGB (rows, cols, 3) uint8 of ``grey`` plus ``chroma`` times a red-green axis of no grey value."""
+    axis = np.array([1.0, -0.299 / 0.587, 0.0])  # (0.299 r + 0.587 g = 0)
+    return np.clip(grey[..., None] + chroma[..., None] * axis, 0, 255).round().astype(np.uint8)
+
+
+def test_stripes_of_two_colours_of_one_brightness_repeat():
+    # SGM matches the colour line images: red and green stripes of one grey value mislead it
+    # as grey stripes do (unseen seed 89's floor), and their grey values alone are plain
+    rng = np.random.default_rng(2)
+    rows, cols = 64, 400
+    inner = (slice(4, -4), slice(4 * WINDOW_HALF, -4 * (WINDOW_HALF + LEVEL_SHIFTS)))
+    flat = np.full((rows, cols), 120.0)
+    stripes = _stripes(rows, cols, 9, rng, noise=0.0) - 128
+    noise = rng.normal(0, 2.0, (rows, cols, 3))
+    image = np.clip(_colour(flat, stripes) + noise, 0, 255).astype(np.uint8)
+    grey = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
+    assert grey.std() < 3.0  # (the stripes are not in the grey values)
+    assert (repeat_score(grey, 64)[inner] == -2).mean() > 0.95  # plain in grey
+    assert (repeat_score(image, 64)[inner] >= REPEAT_ZNCC).mean() > 0.95
+    # a random colour texture of one brightness does not repeat: its windows anchor their surface
+    image = np.clip(_colour(flat, 4 * (_random_texture(rows, cols, rng) - 128)) + noise, 0, 255).astype(np.uint8)
+    score = repeat_score(image, 64)[inner]
+    assert (score >= REPEAT_ZNCC).mean() < 0.02 and (score > -2).all() and (score < ONCE_ZNCC).mean() > 0.8
+    # the same noise alone, in colour, is plain (the chroma's own noise bound)
+    image = np.clip(flat[..., None] + noise, 0, 255).astype(np.uint8)
+    assert (repeat_score(image, 64) == -2).all()
+    # grey stripes score the same in colour (no chroma to add)
+    grey = np.clip(_stripes(rows, cols, 9, rng), 0, 255).round().astype(np.uint8)
+    np.testing.assert_array_equal(repeat_score(np.repeat(grey[..., None], 3, axis=2), 64), repeat_score(grey, 64))
+
+
 def test_a_striped_patch_alone_is_dropped_and_one_on_a_textured_surface_kept():
     rng = np.random.default_rng(1)
     rows, cols = 80, 400
@@ -47,7 +80,7 @@ def test_a_striped_patch_alone_is_dropped_and_one_on_a_textured_surface_kept():
     disp[:, 198:202] = -1.0  # (the jump between the halves: no cell joins them)
     disp[40:, 198:202] = 20.0  # the bottom half joined to the textured surface
     out = disp.copy()
-    n = drop_repeating(out, gray, 64, -1.0)
+    n = drop_repeating(out, repeat_score(gray, 64), -1.0)
     top, bottom = (slice(4, 36), slice(220, 360)), (slice(44, 76), slice(220, 360))
     assert (out[top] == -1.0).mean() > 0.95  # dropped: repeats, no texture of its own
     assert (out[bottom] == 20.0).all()  # kept: its surface is the random texture's
@@ -55,4 +88,4 @@ def test_a_striped_patch_alone_is_dropped_and_one_on_a_textured_surface_kept():
     assert n == np.count_nonzero((out == -1.0) & (disp != -1.0))
     # the same with no repeat within the search: nothing dropped
     out = disp.copy()
-    assert drop_repeating(out, gray, 4, -1.0) == 0 and (out == disp).all()
+    assert drop_repeating(out, repeat_score(gray, 4), -1.0) == 0 and (out == disp).all()

@@ -19,6 +19,11 @@ holds fewer than :data:`ANCHOR_SHARE` of cells on windows with texture that does
 and its striped part with it; a patch of stripes alone could lie a period off. A patch a
 period off that its surface's right part joins through a slanted floor, whose parallax runs
 through the period from near to far, is kept with it (unseen seed 73's floor).
+
+SGM matches the colour line images, so stripes of two colours of one brightness mislead
+it as much as grey stripes do, while their grey values hold only the sensor noise. Each
+window is also scored on its chroma (the colour less its grey value), and repeats where
+either repeats.
 """
 
 from __future__ import annotations
@@ -27,6 +32,7 @@ import cv2
 import numpy as np
 from numba import njit, prange
 
+from ..io.images import to_gray
 from .surfaces import SAME_SURFACE_COLUMNS, surface_forest, surface_root
 
 __all__ = ["drop_repeating", "repeat_score"]
@@ -50,6 +56,29 @@ ONCE_ZNCC = 0.7
 #: A window whose grey values vary by less than this variance (2 grey levels standard
 #: deviation, about the sensor noise) has no pattern to repeat and is neither.
 MIN_VARIANCE = 4.0
+#: The chroma: image 1's colour less its grey value (BT.601 weights, as ``cv2.COLOR_RGB2GRAY``)
+#: in each of R, G and B, scaled by 1 / sqrt(3) (its variance the mean of the three). The three
+#: channels span a plane (a grey pixel has none); these two rows give every sum of squares
+#: and products over a window that the three give, in two passes of the ZNCC instead of
+#: three. Unseen generated seed 89's red and green floor stripes vary by 2.5 grey levels over
+#: 5 x 5 px, its sensor noise, and by 30 levels in red: in grey its windows were texture that
+#: does not repeat and anchored the floor, which SGM matched a period off (0.806 of the
+#: pair's matches within 3 px).
+_GREY_WEIGHTS = np.array([0.299, 0.587, 0.114])
+_CHROMA = (np.eye(3) - np.outer(np.ones(3), _GREY_WEIGHTS)) / np.sqrt(3.0)  # rows: R, G, B less grey
+
+
+def _chroma_rows() -> np.ndarray:
+    """(2, 3) float32 rows ``A`` with ``|A c|^2 = |_CHROMA c|^2`` for every colour ``c``."""
+    lam, vec = np.linalg.eigh(_CHROMA.T @ _CHROMA)  # (rank 2: the first eigenvalue is 0)
+    return (np.sqrt(lam[1:])[:, None] * vec[:, 1:].T).astype(np.float32)
+
+
+_CHROMA_ROWS = _chroma_rows()
+#: :data:`MIN_VARIANCE` for the chroma's two channels together: the same sensor noise, equal
+#: and independent in R, G and B, has 0.780 of a channel's variance there (the sum of the
+#: squared entries of :data:`_CHROMA`) against 0.447 in the grey values (of the squared weights).
+MIN_CHROMA_VARIANCE = MIN_VARIANCE * float(np.sum(_CHROMA**2) / np.sum(_GREY_WEIGHTS**2))
 #: Shifts tried at each level of the pyramid: 1 to this many columns at full size, then at
 #: each halving those beyond half of it (periods of twice as many columns), until the shifts
 #: reach the search's width. 16 columns at full size take the fine stripes that halving
@@ -64,12 +93,13 @@ ANCHOR_SHARE = 0.1
 
 @njit(parallel=True, cache=True)
 def _score_level(g, smin, smax, half, rows_w, min_var, dip):
-    """One level of :func:`repeat_score` over the shifts ``smin``..``smax``: (rows, width)
-    float32, the best ZNCC after the dip, -1 where none, -2 where the window is plain or
+    """One level of :func:`repeat_score` of ``g`` (channels, rows, width) float32 over the
+    shifts ``smin``..``smax``: (rows, width) float32, the best ZNCC after the dip (the
+    channels' covariances and variances summed), -1 where none, -2 where the window is plain or
     reaches beyond the row. Computed at every :data:`STRIDE`-th row and column, each value
     standing for the cells up to the next (a window of 5 x 25 cells moves by a row or a
     column of it)."""
-    rows, width = g.shape
+    nc, rows, width = g.shape
     out = np.full((rows, width), -1.0, np.float32)
     cols = 2 * half + 1
     up = rows_w // 2
@@ -78,38 +108,57 @@ def _score_level(g, smin, smax, half, rows_w, min_var, dip):
         r0, r1 = max(r - up, 0), min(r + up + 1, rows)
         n = (r1 - r0) * cols
         # running sums along the row of the window's column sums (values, squares, products)
-        cs = np.zeros(width + 1)
+        cs = np.zeros((nc, width + 1))
         cq = np.zeros(width + 1)
+        colq = np.zeros(width)
+        for c in range(nc):
+            cola = np.zeros(width)
+            for rr in range(r0, r1):  # (along the row innermost: vectorised)
+                row = g[c, rr]
+                for x in range(width):
+                    cola[x] += row[x]
+                    colq[x] += row[x] * row[x]
+            for x in range(width):
+                cs[c, x + 1] = cs[c, x] + cola[x]
         for x in range(width):
-            a = 0.0
-            b = 0.0
-            for rr in range(r0, r1):
-                a += g[rr, x]
-                b += g[rr, x] * g[rr, x]
-            cs[x + 1] = cs[x] + a
-            cq[x + 1] = cq[x] + b
-        mean = np.zeros(width)
+            cq[x + 1] = cq[x] + colq[x]
+        mean = np.zeros((nc, width))
         inv = np.zeros(width)  # 1 / standard deviation; 0: plain or beyond the row
         best = np.full(width, -1.0)
         for x in range(half, width - half):
-            mean[x] = (cs[x + half + 1] - cs[x - half]) / n
-            v = (cq[x + half + 1] - cq[x - half]) / n - mean[x] * mean[x]
+            v = (cq[x + half + 1] - cq[x - half]) / n
+            for c in range(nc):
+                mean[c, x] = (cs[c, x + half + 1] - cs[c, x - half]) / n
+                v -= mean[c, x] * mean[c, x]
             if v >= min_var:
                 inv[x] = 1.0 / np.sqrt(v)
+        if not np.any(inv):  # every window plain: no shift to try
+            out[r:min(r + STRIDE, rows)] = -2.0
+            continue
         dipped = np.zeros(width, np.bool_)
         cp = np.zeros(width + 1)
         colp = np.zeros(width, np.float32)
+        mm = np.zeros(width)
         for s in range(1, min(smax, width - 1) + 1):
             colp[:] = 0.0
-            for rr in range(r0, r1):  # (along the row innermost: vectorised)
-                for x in range(width - s):
-                    colp[x] += g[rr, x] * g[rr, x + s]
+            for c in range(nc):
+                for rr in range(r0, r1):  # (along the row innermost: vectorised)
+                    row = g[c, rr]
+                    for x in range(width - s):
+                        colp[x] += row[x] * row[x + s]
             for x in range(width - s):
                 cp[x + 1] = cp[x] + colp[x]
+            # the windows' means' products, summed over the channels (apart from the loop
+            # below, which a loop within would slow by a fifth)
+            mm[:] = 0.0
+            for c in range(nc):
+                mc = mean[c]
+                for x in range(half, width - half - s, STRIDE):
+                    mm[x] += mc[x] * mc[x + s]
             for x in range(half, width - half - s, STRIDE):
                 if inv[x] == 0.0 or inv[x + s] == 0.0:
                     continue
-                z = ((cp[x + half + 1] - cp[x - half]) / n - mean[x] * mean[x + s]) * inv[x] * inv[x + s]
+                z = ((cp[x + half + 1] - cp[x - half]) / n - mm[x]) * inv[x] * inv[x + s]
                 if z <= dip:
                     dipped[x] = True
                 elif dipped[x] and s >= smin and z > best[x]:
@@ -125,39 +174,71 @@ def _score_level(g, smin, smax, half, rows_w, min_var, dip):
     return out
 
 
-def repeat_score(gray: np.ndarray, shifts: int) -> np.ndarray:
-    """How strongly each cell's window of ``gray`` (rows, width) repeats along its row within
-    ``shifts`` columns: (rows, width) float32, the best ZNCC (:data:`WINDOW_ROWS` x 2
-    :data:`WINDOW_HALF` + 1 windows) at a shift after the ZNCC first fell to
-    :data:`DIP_ZNCC`; -1 where it never came back, -2 where the window is plain (below
-    :data:`MIN_VARIANCE`) or reaches beyond the row. Shifts beyond :data:`LEVEL_SHIFTS`
-    are tried on halved copies (INTER_AREA), their scores read back at the nearest cell."""
-    h, w = gray.shape
-    # float32 about the mean grey value (centred, the products' sums over a window keep the
+def repeat_score(image: np.ndarray, shifts: int) -> np.ndarray:
+    """How strongly each cell's window of ``image`` (rows, width) grey or (rows, width, 3) RGB
+    repeats along its row within ``shifts`` columns: (rows, width) float32, the best ZNCC
+    (:data:`WINDOW_ROWS` x 2 :data:`WINDOW_HALF` + 1 windows) at a shift after the ZNCC first
+    fell to :data:`DIP_ZNCC`; -1 where it never came back, -2 where the window is plain (below
+    :data:`MIN_VARIANCE`) or reaches beyond the row. Shifts beyond :data:`LEVEL_SHIFTS` are
+    tried on halved copies (INTER_AREA), their scores read back at the nearest cell. Of a
+    colour image, the higher of its grey values' score and its chroma's (:data:`_CHROMA`,
+    plain below :data:`MIN_CHROMA_VARIANCE`): -2 where both are plain."""
+    if image.ndim == 2:
+        return _repeat_score(np.asarray(image, np.float32)[None], shifts, MIN_VARIANCE)
+    h, w = image.shape[:2]
+    score = _repeat_score(to_gray(image).astype(np.float32)[None], shifts, MIN_VARIANCE)
+    chroma = (image.reshape(h * w, 3).astype(np.float32) @ _CHROMA_ROWS.T).T.reshape(2, h, w)
+    return np.maximum(score, _repeat_score(chroma, shifts, MIN_CHROMA_VARIANCE), out=score)
+
+
+def _repeat_score(level: np.ndarray, shifts: int, min_var: float) -> np.ndarray:
+    """:func:`repeat_score` of the channels ``level`` (channels, rows, width) float32 together
+    (centred here, in place), a window plain where their variances sum to less than ``min_var``."""
+    _, h, w = level.shape
+    # about each channel's mean (centred, the float32 products' sums over a window keep the
     # digits a ZNCC needs): half float64's memory; its time on the bench pair was the same
     # within the machine's noise
-    level = np.asarray(gray, np.float32) - np.float32(np.mean(gray))
+    for plane in level:
+        plane -= np.float32(np.mean(plane, dtype=np.float64))
     score = None
     step, smin = 1, 1
     while True:
         smax = min(LEVEL_SHIFTS, -(-shifts // step))  # (a repeat beyond the search misleads no match)
-        s = _score_level(level, smin, smax, WINDOW_HALF, WINDOW_ROWS, MIN_VARIANCE, DIP_ZNCC)
+        s = _score_level(np.ascontiguousarray(level), smin, smax, WINDOW_HALF, WINDOW_ROWS, min_var, DIP_ZNCC)
         if score is None:
             score = s
-        else:  # a window plain at full size stays plain
-            np.maximum(score, cv2.resize(s, (w, h), interpolation=cv2.INTER_NEAREST), out=score, where=score > -2)
-        if LEVEL_SHIFTS * step >= shifts or min(level.shape) < 2 * WINDOW_ROWS:
+        else:  # the nearest cell's score where higher; a window plain at full size stays plain
+            _raise_to(score, s, _nearest(h, s.shape[0]), _nearest(w, s.shape[1]))
+        if LEVEL_SHIFTS * step >= shifts or min(level.shape[1:]) < 2 * WINDOW_ROWS:
             return score
-        level = cv2.resize(level, ((level.shape[1] + 1) // 2, (level.shape[0] + 1) // 2), interpolation=cv2.INTER_AREA)
+        size = ((level.shape[2] + 1) // 2, (level.shape[1] + 1) // 2)
+        level = np.stack([cv2.resize(p, size, interpolation=cv2.INTER_AREA) for p in level])
         step, smin = 2 * step, LEVEL_SHIFTS // 2 + 1
 
 
-def drop_repeating(disp: np.ndarray, gray: np.ndarray, shifts: int, invalid: float) -> int:
+def _nearest(n: int, m: int) -> np.ndarray:
+    """(n,) int64: the index among ``m`` that OpenCV's INTER_NEAREST reads for each of ``n``."""
+    ramp = np.arange(m, dtype=np.float32)[None]
+    return cv2.resize(ramp, (n, 1), interpolation=cv2.INTER_NEAREST)[0].astype(np.int64)
+
+
+@njit(parallel=True, cache=True)
+def _raise_to(score, coarse, rows, cols):
+    """``score`` (h, w) raised, in place, to ``coarse[rows[r], cols[c]]`` where that is higher
+    and ``score`` is not -2 (plain): a nearest-neighbour upsampling and maximum in one pass."""
+    for r in prange(score.shape[0]):
+        src = coarse[rows[r]]
+        for c in range(score.shape[1]):
+            v = src[cols[c]]
+            if v > score[r, c] > -2.0:
+                score[r, c] = v
+
+
+def drop_repeating(disp: np.ndarray, score: np.ndarray, invalid: float) -> int:
     """Set the estimates of ``disp`` (rows, width) float32, invalid at or below ``invalid``,
-    on windows of ``gray`` (line image 1, same shape) that repeat within ``shifts`` columns
-    (the search's width) to ``invalid``, in place, where their surface is not anchored by
+    on windows that repeat (``score``: :func:`repeat_score` of line image 1 within the
+    search's width) to ``invalid``, in place, where their surface is not anchored by
     texture that does not repeat (:data:`ANCHOR_SHARE`); returns how many."""
-    score = repeat_score(gray, shifts)
     if not np.any((score >= REPEAT_ZNCC) & (disp > invalid)):  # (no forest to build)
         return 0
     return int(_drop_repeating(disp, score, float(invalid), SAME_SURFACE_COLUMNS, REPEAT_ZNCC, ONCE_ZNCC,

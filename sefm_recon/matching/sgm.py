@@ -40,7 +40,7 @@ from .checks import (drop_carried_plain, drop_collisions, drop_fattened_cells, d
                      drop_occluded_plain, drop_outside_windows, drop_range_ends, drop_unanchored_far, drop_unseen_far,
                      flat_windows)
 from .lines import LineGrid, line_grid, line_images, pixel_grid
-from .periodic import drop_repeating
+from .periodic import drop_repeating, repeat_score
 from .planes import fill_planes
 from .readback import pixel_matches
 from .sefm import DenseMatches, depth_range
@@ -812,7 +812,8 @@ def match_pair_sgm(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config,
     n_flat = drop_flat_windows(disp, L1, min_d - 1.0) if opt.flat_check else 0
     n_out = drop_outside_windows(disp, span2, min_d, min_d - 1.0) if opt.outside_check else 0
     n_col = drop_collisions(disp, L1, L2, min_d, min_d - 1.0) if opt.collision_check else 0
-    gray1 = to_gray(L1)  # once, for the plain windows, the repeat check and the wide fit
+    gray1 = to_gray(L1)  # once, for the plain windows and the wide fit
+    repeat = repeat_score(L1, num_d) if opt.repeat_check else None  # (of the colours SGM matched)
     plain = plain_windows(gray1) if opt.plain_fit or opt.wide_fit or opt.occlusion_check or opt.carried_check else None
     n_occ = drop_occluded_plain(disp, L1, plain, span2, min_d, min_d - 1.0) if opt.occlusion_check else 0
     n_car = drop_carried_plain(disp, L1, plain, min_d - 1.0) if opt.carried_check else 0
@@ -827,14 +828,14 @@ def match_pair_sgm(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config,
     if found is not None and opt.near_check:
         n_near = drop_unsupported_near(disp, grid, found, near, near_end, min_d - 1.0)
     n_coarse = drop_off_coarse(disp, grid, found, min_d - 1.0) if found is not None and opt.coarse_check else 0
-    n_rep = drop_repeating(disp, gray1, num_d, min_d - 1.0) if opt.repeat_check else 0
+    n_rep = drop_repeating(disp, repeat, min_d - 1.0) if opt.repeat_check else 0
     n_frame = drop_frame_end_runs(disp, frames, min_d, min_d - 1.0) if opt.frame_check else 0
     n_fat = drop_fattened_cells(disp, min_d - 1.0) if opt.edge_check else 0
     if opt.median:
         surface_median(disp, min_d - 1.0, slanted=opt.slanted_median)
     n_fit = fit_plain_surfaces(disp, plain, min_d - 1.0) if opt.plain_fit else 0
     n_wide = fit_wide_planes(disp, plain, gray1, gray2, min_d, min_d - 1.0) if opt.wide_fit else 0
-    del plain, gray1, gray2
+    del plain, gray1, gray2, repeat
     n_dense = int(np.count_nonzero(disp >= min_d))
     # leading slices of pixel-sized arrays, so that the plane fill's matches (unmatched
     # pixels of image 1) append without copying the millions found (a few tenths of a
