@@ -148,8 +148,8 @@ def _score_level(g, smin, smax, half, rows_w, min_var, dip):
                         colp[x] += row[x] * row[x + s]
             for x in range(width - s):
                 cp[x + 1] = cp[x] + colp[x]
-            # the windows' means' products, summed over the channels (apart from the loop
-            # below, which a loop within would slow by a fifth)
+            # the windows' means' products summed over the channels, kept out of the loop
+            # below (a loop over the channels inside it slowed the kernel by a fifth)
             mm[:] = 0.0
             for c in range(nc):
                 mc = mean[c]
@@ -184,7 +184,7 @@ def repeat_score(image: np.ndarray, shifts: int) -> np.ndarray:
     colour image, the higher of its grey values' score and its chroma's (:data:`_CHROMA`,
     plain below :data:`MIN_CHROMA_VARIANCE`): -2 where both are plain."""
     if image.ndim == 2:
-        return _repeat_score(np.asarray(image, np.float32)[None], shifts, MIN_VARIANCE)
+        return _repeat_score(np.array(image, np.float32)[None], shifts, MIN_VARIANCE)  # (a copy: centred in place)
     h, w = image.shape[:2]
     score = _repeat_score(to_gray(image).astype(np.float32)[None], shifts, MIN_VARIANCE)
     chroma = (image.reshape(h * w, 3).astype(np.float32) @ _CHROMA_ROWS.T).T.reshape(2, h, w)
