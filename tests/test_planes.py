@@ -129,6 +129,33 @@ def test_a_mostly_unmatched_region_whose_matches_lie_on_no_one_plane_drops_them(
     assert len(fill_planes(gray, (W, H), tv, *split).dropped) == 0
 
 
+def test_a_region_is_judged_with_the_matches_the_repeat_check_dropped():
+    """A tenth of the plain square matched on one plane (the matches left beside an object)
+    and a fifth more dropped by the repeat check, in 8 px patches at three other depths: judged
+    with those, the region holds no surface the matcher found, and its matches go. Without
+    them, or with them on the region's plane, or where the region is mostly matched with
+    them, its matches stay."""
+    tv, gray = _scene()
+    rng = np.random.default_rng(7)
+    px = _plain_pixels()
+    draw = rng.random(len(px))
+    kept, rest = px[draw < 0.1], px[(draw >= 0.1) & (draw < 0.3)]
+    depth = rng.integers(1, 4, (H // 8 + 1, W // 8 + 1))[rest[:, 0] // 8, rest[:, 1] // 8]
+    scattered = [np.concatenate(a) for a in zip(*(_matches(tv, rest[depth == b], disp=DISP + 4 * b)
+                                                  for b in range(1, 4)))][:2]
+    own = _matches(tv, kept)
+    out = fill_planes(gray, (W, H), tv, *own, repeats=tuple(scattered))
+    np.testing.assert_array_equal(np.sort(out.dropped), np.arange(len(kept)))
+    assert len(fill_planes(gray, (W, H), tv, *own).dropped) == 0
+    assert len(fill_planes(gray, (W, H), tv, *own, repeats=_matches(tv, rest)[:2]).dropped) == 0
+    assert len(fill_planes(gray, (W, H), tv, *own, repeats=tuple(scattered), drop=False).dropped) == 0
+    more = px[(draw >= 0.1) & (draw < 0.6)]
+    depth = rng.integers(1, 4, (H // 8 + 1, W // 8 + 1))[more[:, 0] // 8, more[:, 1] // 8]
+    many = [np.concatenate(a) for a in zip(*(_matches(tv, more[depth == b], disp=DISP + 4 * b)
+                                             for b in range(1, 4)))][:2]
+    assert len(fill_planes(gray, (W, H), tv, *own, repeats=tuple(many)).dropped) == 0
+
+
 def test_a_mostly_unmatched_regions_matches_off_its_plane_go_unless_they_are_a_second_surface():
     """A third of the plain square matched: 80 % on one plane, the rest in 8 px patches at
     three other depths drawn at random (a third of them on any one plane): those are dropped,

@@ -299,6 +299,19 @@ def _plane_support(uv1: np.ndarray, uv2: np.ndarray, idx: np.ndarray, rng: np.ra
     return H, np.linalg.norm(pred - uv2[idx], axis=1) <= 1.0
 
 
+def _scattered_with(uv1: np.ndarray, uv2: np.ndarray, repeats: tuple[np.ndarray, np.ndarray], mine: np.ndarray,
+                    area: int, rng: np.random.Generator, seed: int) -> bool:
+    """Whether a region's matches (``uv1``, ``uv2``: (N, 2)) and the ``repeats`` of the region
+    (``mine``: (M,) bool over them) are together fewer than :data:`MOSTLY_UNMATCHED_SHARE` of
+    its ``area`` and under :data:`MAX_SCATTERED_SUPPORT` of them on one plane (RANSAC's
+    homography, :func:`_plane_support`); False where the region holds no repeat."""
+    if not mine.any() or len(uv1) + np.count_nonzero(mine) >= MOSTLY_UNMATCHED_SHARE * area:
+        return False
+    all1, all2 = np.concatenate([uv1, repeats[0][mine]]), np.concatenate([uv2, repeats[1][mine]])
+    _, on = _plane_support(all1, all2, np.arange(len(all1)), rng, seed)
+    return bool(np.mean(on) < MAX_SCATTERED_SUPPORT)
+
+
 def _same_plane(H: np.ndarray, H_off: np.ndarray, uv1: np.ndarray) -> bool:
     """Whether the homographies ``H`` and ``H_off`` give the pixels ``uv1`` (N, 2) of image 1
     partners a median of :data:`SNAP_PX` or less apart: one surface, the second fitted to
@@ -517,14 +530,15 @@ def _rim_planes(tv, pose: _Pose, labels: np.ndarray, stats: np.ndarray, uv1: np.
 
 def fill_planes(gray1: np.ndarray, size2: tuple[int, int], tv, uv1: np.ndarray, uv2: np.ndarray, X: np.ndarray,
                 *, fill: bool = True, snap: bool = True, drop: bool = True, rims: bool = True,
-                seed: int = 0) -> PlaneFill:
+                repeats: tuple[np.ndarray, np.ndarray] | None = None, seed: int = 0) -> PlaneFill:
     """Partners for the unmatched pixels of image 1's large plain regions whose matches lie on
     one plane (``fill``), for the matches without signal of the regions that are one plane
     all through (``snap``, :data:`SNAP_PX`), and the matches of the regions mostly unmatched
     whose matches lie on no one plane, and those off their plane on no second one, to drop
     (``drop``, :data:`MAX_SCATTERED_SUPPORT`, :data:`MIN_OFF_PLANE`);
     with ``rims``, the same fill and move for the small regions from their rim's plane
-    (:func:`_rim_planes`).
+    (:func:`_rim_planes`). A region's matches are also dropped where, judged together with
+    the ``repeats`` (:data:`MAX_SCATTERED_SUPPORT`), they lie on no one plane.
 
     Args:
         gray1: (H, W) uint8 image 1 (working size).
@@ -532,6 +546,10 @@ def fill_planes(gray1: np.ndarray, size2: tuple[int, int], tv, uv1: np.ndarray, 
         tv: the pair's geometry (:class:`.geometry.two_view.TwoView`: ``K1``, ``K2``, ``R``, ``t``, ``F``).
         uv1, uv2: (N, 2) the matches, COLMAP positions, at most one per pixel of image 1.
         X: (N, 3) their points (camera 1's frame), for what they hide in view 2.
+        repeats: (M, 2) and (M, 2), the partners SGM found that the repeat check
+            (:mod:`.periodic`) dropped: part of what the matcher found on a plain region.
+            Its stripes taken out, a striped plain wall's few matches left beside the objects
+            in front of it lie mostly on one plane, while all that SGM found there does not.
     Returns the added matches, the moved ones and the ones to drop (:class:`PlaneFill`); the
     arguments are not changed.
     """
@@ -546,6 +564,7 @@ def fill_planes(gray1: np.ndarray, size2: tuple[int, int], tv, uv1: np.ndarray, 
     if len(uv1) == 0 or not (fill or snap or drop):
         return empty
     lab, index = _region_of_matches(np.ascontiguousarray(uv1), labels)
+    rep_lab = _region_of_matches(np.ascontiguousarray(repeats[0]), labels)[0] if drop and repeats is not None else None
     pose = _pose(tv)
     quiet = quiet_windows(gray1, SNAP_WINDOW, SNAP_LEVELS) if snap else None
     rng = np.random.default_rng(seed)
@@ -561,6 +580,10 @@ def fill_planes(gray1: np.ndarray, size2: tuple[int, int], tv, uv1: np.ndarray, 
         if H is None:
             continue
         support = np.mean(on_plane)  # (judged on every match of the region, before any is dropped)
+        if few and rep_lab is not None and _scattered_with(uv1[idx], uv2[idx], repeats, rep_lab == k, areas[k],
+                                                           rng, seed):
+            dropped.append(idx)
+            continue
         if few and support < MAX_SCATTERED_SUPPORT:  # no surface the matcher found
             if drop:
                 dropped.append(idx)

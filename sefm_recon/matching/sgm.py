@@ -828,7 +828,13 @@ def match_pair_sgm(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config,
     if found is not None and opt.near_check:
         n_near = drop_unsupported_near(disp, grid, found, near, near_end, min_d - 1.0)
     n_coarse = drop_off_coarse(disp, grid, found, min_d - 1.0) if found is not None and opt.coarse_check else 0
-    n_rep = drop_repeating(disp, repeat, min_d - 1.0) if opt.repeat_check else 0
+    n_rep, repeats = 0, None
+    if opt.repeat_check:
+        before = disp.copy() if opt.scattered_check else None
+        n_rep = drop_repeating(disp, repeat, min_d - 1.0)
+        if n_rep and before is not None:  # the estimates dropped, for their plain regions' verdict (fill_planes)
+            repeats = np.where(before > disp, before, np.float32(min_d - 1.0))
+        del before
     n_frame = drop_frame_end_runs(disp, frames, min_d, min_d - 1.0) if opt.frame_check else 0
     n_fat = drop_fattened_cells(disp, min_d - 1.0) if opt.edge_check else 0
     if opt.median:
@@ -837,6 +843,8 @@ def match_pair_sgm(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config,
     n_wide = fit_wide_planes(disp, plain, gray1, gray2, min_d, min_d - 1.0) if opt.wide_fit else 0
     del plain, gray1, gray2, repeat
     n_dense = int(np.count_nonzero(disp >= min_d))
+    if repeats is not None:  # (read back before the matches, so that their pixel-sized arrays are not held at once)
+        repeats = tuple(a.copy() for a in pixel_matches(repeats, min_d, grid, tv, size1, size2, opt.interpolate)[:2])
     # leading slices of pixel-sized arrays, so that the plane fill's matches (unmatched
     # pixels of image 1) append without copying the millions found (a few tenths of a
     # second on 2000x1500)
@@ -846,7 +854,7 @@ def match_pair_sgm(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config,
     n_planes = n_moved = n_scattered = 0
     if opt.planes or opt.plane_snap or opt.scattered_check:
         pf = fill_planes(to_gray(img1), size2, tv, uv1, uv2, X, fill=opt.planes, snap=opt.plane_snap,
-                         drop=opt.scattered_check, rims=opt.rim_planes)
+                         drop=opt.scattered_check, rims=opt.rim_planes, repeats=repeats)
         n_planes, n_moved, n_scattered = len(pf.uv1), len(pf.moved), len(pf.dropped)
         uv2[pf.moved] = pf.moved_uv2
         X[pf.moved] = pf.moved_xyz
