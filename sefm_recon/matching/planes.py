@@ -300,15 +300,16 @@ def _plane_support(uv1: np.ndarray, uv2: np.ndarray, idx: np.ndarray, rng: np.ra
 
 
 def _scattered_with(uv1: np.ndarray, uv2: np.ndarray, repeats: tuple[np.ndarray, np.ndarray], mine: np.ndarray,
-                    area: int, rng: np.random.Generator, seed: int) -> bool:
+                    area: int, seed: int) -> bool:
     """Whether a region's matches (``uv1``, ``uv2``: (N, 2)) and the ``repeats`` of the region
     (``mine``: (M,) bool over them) are together fewer than :data:`MOSTLY_UNMATCHED_SHARE` of
     its ``area`` and under :data:`MAX_SCATTERED_SUPPORT` of them on one plane (RANSAC's
-    homography, :func:`_plane_support`); False where the region holds no repeat."""
+    homography, :func:`_plane_support`, its subset drawn by a generator of its own: the other
+    regions' draws stay as they were); False where the region holds no repeat."""
     if not mine.any() or len(uv1) + np.count_nonzero(mine) >= MOSTLY_UNMATCHED_SHARE * area:
         return False
     all1, all2 = np.concatenate([uv1, repeats[0][mine]]), np.concatenate([uv2, repeats[1][mine]])
-    _, on = _plane_support(all1, all2, np.arange(len(all1)), rng, seed)
+    _, on = _plane_support(all1, all2, np.arange(len(all1)), np.random.default_rng(seed), seed)
     return bool(np.mean(on) < MAX_SCATTERED_SUPPORT)
 
 
@@ -580,8 +581,7 @@ def fill_planes(gray1: np.ndarray, size2: tuple[int, int], tv, uv1: np.ndarray, 
         if H is None:
             continue
         support = np.mean(on_plane)  # (judged on every match of the region, before any is dropped)
-        if few and rep_lab is not None and _scattered_with(uv1[idx], uv2[idx], repeats, rep_lab == k, areas[k],
-                                                           rng, seed):
+        if few and rep_lab is not None and _scattered_with(uv1[idx], uv2[idx], repeats, rep_lab == k, areas[k], seed):
             dropped.append(idx)
             continue
         if few and support < MAX_SCATTERED_SUPPORT:  # no surface the matcher found
