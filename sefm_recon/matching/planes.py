@@ -15,7 +15,8 @@ A region whose matches are few (:data:`MIN_MATCHED_SHARE`), or split over severa
 depths (a wrong patch of the matcher, a curved or folded surface), is not filled:
 the fill only extends what the matcher found. Where they cover under half of it and
 lie mostly off any one plane, the matcher found no surface there at all, and they
-are dropped (:data:`MAX_SCATTERED_SUPPORT`). Where they do mostly lie on one plane,
+are dropped (:data:`MAX_SCATTERED_SUPPORT`); the estimates the repeat check dropped
+there (:mod:`.periodic`) count in that test with them. Where they do mostly lie on one plane,
 the ones off it face the same test: patches carried over the plain surface on no
 one plane, or on one within SGM's wave about the first, are dropped, a second surface in
 the region stays (:data:`MIN_OFF_PLANE`).
