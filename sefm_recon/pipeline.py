@@ -557,12 +557,12 @@ def _wait_through_interrupts(jobs: list) -> None:
 def write_pair_outputs(result: PairResult, cfg: Config, folder: Path, names: tuple[str, str]) -> dict:
     """Write every output file of a pair into ``folder`` (a staging folder)."""
     from .io.colmap_model import write_two_view_model
+    from .io.matches import write_matches
     from .io.ply import write_mesh, write_point_cloud
     from .io.visualize import draw_matches, write_image
 
     def small_files():
-        np.savez(folder / "matches.npz", uv1=result.uv1.astype(np.float32),
-                 uv2=result.uv2.astype(np.float32), score=result.score.astype(np.float32))
+        write_matches(folder / "matches.npz", uv1=result.uv1, uv2=result.uv2, score=result.score)
         if result.mesh is not None:
             write_mesh(folder / "mesh.ply", *result.mesh)
         if result.image1 is not None and result.image2 is not None:

@@ -6,7 +6,10 @@ import numpy as np
 import pytest
 
 from sefm_recon.io.colmap_model import read_model, write_two_view_model
+from sefm_recon.io.matches import _WRITE_BLOCK as _MATCH_BLOCK
+from sefm_recon.io.matches import write_matches
 from sefm_recon.io.ply import (
+    _WRITE_BLOCK,
     read_mesh,
     read_ply_header,
     read_point_cloud,
@@ -41,8 +44,8 @@ def _sphere(n, radius=1.0, center=(0.0, 0.0, 0.0)):
 # --------------------------------------------------------------------- PLY
 
 
-def test_ply_point_cloud_round_trip(tmp_path):
-    n = 500
+@pytest.mark.parametrize("n", [500, 2 * _WRITE_BLOCK + 7])  # (the second: written in three blocks, the last short)
+def test_ply_point_cloud_round_trip(tmp_path, n):
     xyz = RNG.normal(size=(n, 3))
     rgb = RNG.integers(0, 256, (n, 3), dtype=np.uint8)
     rgb[:3] = [[0, 0, 0], [255, 255, 255], [1, 128, 254]]
@@ -67,6 +70,23 @@ def test_ply_point_cloud_round_trip(tmp_path):
     np.testing.assert_array_equal(rgb2, rgb)
     # atomic writer leaves no temporary files behind
     assert [p.name for p in path.parent.iterdir()] == ["cloud.ply"]
+    data = path.read_bytes()  # the header, then 27 bytes a point and nothing more
+    assert len(data) == data.index(b"end_header\n") + len(b"end_header\n") + n * 27
+
+
+@pytest.mark.parametrize("n", [0, 5, 2 * _MATCH_BLOCK + 3])
+def test_matches_npz_is_numpys_savez_of_float32_copies(tmp_path, n):
+    uv1, uv2 = RNG.normal(size=(n, 2)) * 1e3, RNG.normal(size=(n, 2)) * 1e3
+    score = RNG.random(n)
+    write_matches(tmp_path / "m.npz", uv1=uv1, uv2=uv2, score=score)
+    np.savez(tmp_path / "s.npz", uv1=uv1.astype(np.float32), uv2=uv2.astype(np.float32),
+             score=score.astype(np.float32))
+    with np.load(tmp_path / "m.npz") as m, np.load(tmp_path / "s.npz") as s:
+        assert m.files == s.files == ["uv1", "uv2", "score"]
+        for k in m.files:
+            assert m[k].dtype == np.float32 and m[k].shape == s[k].shape
+            np.testing.assert_array_equal(m[k], s[k])
+    assert (tmp_path / "m.npz").stat().st_size == (tmp_path / "s.npz").stat().st_size
 
 
 def test_ply_without_normals_and_empty(tmp_path):
