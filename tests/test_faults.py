@@ -380,25 +380,27 @@ def test_full_disk_simulated_before_writing(pair, tmp_path, monkeypatch):
 
 
 def test_full_disk_simulated_truncated_file(tmp_path, monkeypatch):
-    """No root needed: open3d reports success on a truncated file on a full device (the mesh's writer): the
-    staging folder says 'no space left' and is removed."""
+    """No root needed: a file system that takes the writes and leaves a truncated file (as a full device can
+    where the writer does not check, open3d's mesh writer among them): the mesh's writer says 'no space left'
+    and the staging folder is removed."""
     import errno
+    import io
 
-    import open3d as o3d
-
+    from sefm_recon.io import ply
     from sefm_recon.io.output import StagedOutput
     from sefm_recon.io.ply import write_mesh
     from sefm_recon.io.space import NoSpaceError
 
-    real_write, real_usage = o3d.io.write_triangle_mesh, shutil.disk_usage
+    real_usage = shutil.disk_usage
 
-    def truncating(path, mesh, **kw):
-        ok = real_write(path, mesh, **kw)
-        with open(path, "r+b") as f:
-            f.truncate(os.path.getsize(path) // 2)
-        return ok
+    class Truncating(io.FileIO):
+        def close(self):
+            if not self.closed:
+                self.flush()
+                os.truncate(self.name, os.path.getsize(self.name) // 2)
+            super().close()
 
-    monkeypatch.setattr(o3d.io, "write_triangle_mesh", truncating)
+    monkeypatch.setattr(ply, "open", lambda path, mode: Truncating(path, mode), raising=False)
     monkeypatch.setattr(shutil, "disk_usage", lambda p: real_usage(p)._replace(free=4096))
     xyz = np.random.default_rng(0).normal(size=(5000, 3))
     tri = np.arange(4998)[:, None] + np.arange(3)

@@ -115,6 +115,17 @@ def test_mesh_round_trip(tmp_path):
     np.testing.assert_allclose(v2, v)
     np.testing.assert_array_equal(f2, f)
     np.testing.assert_array_equal(c2, c)
+    # with normals and without colours; open3d's layout: double vertices, a uchar count and uint indices
+    nrm = v / np.maximum(np.linalg.norm(v, axis=1, keepdims=True), 1e-9)
+    write_mesh(path, v + 0.125, f, None, nrm)
+    vert, face = (read_ply_header(path)["elements"][k] for k in ("vertex", "face"))
+    assert vert["properties"] == [("double", a) for a in ("x", "y", "z", "nx", "ny", "nz")]
+    assert face["count"] == 4 and face["properties"] == [("list uchar uint", "vertex_indices")]
+    v2, f2, c2, n2 = read_mesh(path)
+    np.testing.assert_array_equal(v2, v + 0.125)
+    np.testing.assert_array_equal(n2, nrm)
+    np.testing.assert_array_equal(f2, f)
+    assert c2 is None
 
 
 # ------------------------------------------------------------ points/mesh
