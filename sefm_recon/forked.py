@@ -6,11 +6,11 @@ memory. Both processes then pay a page copy for every page either writes while t
 child runs: the COLMAP model built in a child beside the other output files of the bench
 pair took the write stage from 0.51 to 0.66 s while those files were packed into fresh
 arrays the size of the matches (freed memory reused, so pages shared with the child),
-and from 0.54 to 0.38 s once they were written through small buffers. The child runs one function and sends
-its result back through a pipe (pickled); it dies with a Ctrl-C or with this
-process. Where no child can run (not Linux, one core, no process to be had) or the
-child gives nothing back (its call raised, its result does not pickle, it was
-killed), the call runs in this process, which then raises what the call raises.
+and from 0.54 to 0.38 s once they were written through small buffers. The child runs
+one function and sends its result back through a pipe (pickled); it dies with a Ctrl-C
+or with this process. Where no child can run (not Linux, one core, no process to be
+had) or the child gives nothing back (its call raised, its result does not pickle, it
+was killed), the call runs in this process, which then raises what the call raises.
 """
 
 from __future__ import annotations
