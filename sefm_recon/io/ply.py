@@ -36,8 +36,8 @@ from .space import check_written
 
 log = logging.getLogger(__name__)
 
-#: Points packed and written at a time (9 MB of records with normals and colours): a buffer
-#: reused from block to block, so that writing millions of points costs no fresh memory.
+#: Vertices packed and written at a time (9 MB of a cloud's records with normals and colours): a buffer
+#: reused from block to block, so that writing millions of vertices costs no fresh memory.
 _WRITE_BLOCK = 1 << 18
 
 __all__ = [
@@ -130,6 +130,57 @@ def _to_uint8_colors(c: np.ndarray) -> np.ndarray:
     return np.clip(np.rint(np.asarray(c) * 255.0), 0, 255).astype(np.uint8)
 
 
+def _check_normals(normals: np.ndarray | None, n: int, name: str = "normals") -> np.ndarray | None:
+    if normals is None:
+        return None
+    normals = _check_xyz(normals, name)
+    if len(normals) != n:
+        raise ValueError(f"{name} must be ({n}, 3), got {normals.shape}")
+    return normals
+
+
+_PLY_NAMES = {"<f4": "float", "<f8": "double", "u1": "uchar"}
+
+
+def _vertex_dtype(real: str, normals: bool, colors: bool) -> np.dtype:
+    """The vertex record ``x y z [nx ny nz] [red green blue]``, positions and normals of
+    type ``real`` (``"<f4"`` or ``"<f8"``), colours ``uchar``."""
+    fields = [(a, real) for a in "xyz"]
+    if normals:
+        fields += [(a, real) for a in ("nx", "ny", "nz")]
+    if colors:
+        fields += [(a, "u1") for a in ("red", "green", "blue")]
+    return np.dtype(fields)
+
+
+def _ply_header(vertex: np.dtype, n: int, tail: str = "") -> bytes:
+    """A binary little-endian PLY header with ``n`` vertices of the record ``vertex``, then ``tail``
+    (further elements' lines)."""
+    return "".join(["ply\nformat binary_little_endian 1.0\ncomment Created by sefm-recon\n",
+                    f"element vertex {n}\n",
+                    *(f"property {_PLY_NAMES[vertex[a].str.replace('|', '')]} {a}\n" for a in vertex.names),
+                    tail, "end_header\n"]).encode("ascii")
+
+
+def _write_vertices(f, vertex: np.dtype, xyz: np.ndarray, normals: np.ndarray | None, rgb: np.ndarray | None) -> int:
+    """Write the vertex records of ``xyz``, ``normals`` and ``rgb`` (N, 3) to the file ``f``,
+    :data:`_WRITE_BLOCK` at a time through one buffer; returns the bytes written.
+
+    Packing every record into one array took 0.35 s the first time in a process for the bench
+    pair's 2.6 M points, most of it in the kernel filling its 71 MB of new pages; a block reused,
+    0.04-0.10 s."""
+    n = len(xyz)
+    rec = np.empty(min(n, _WRITE_BLOCK), vertex)
+    for s in range(0, n, len(rec)):
+        block = rec[:min(len(rec), n - s)]
+        for names, a in (("xyz", xyz), (("nx", "ny", "nz"), normals), (("red", "green", "blue"), rgb)):
+            if a is not None:
+                for k, name in enumerate(names):
+                    block[name] = a[s:s + len(block), k]
+        f.write(block.view(np.uint8).data)  # (numpy's tofile says "requested and written", no errno)
+    return n * vertex.itemsize
+
+
 def write_point_cloud(
     path: str | os.PathLike,
     xyz: np.ndarray,
@@ -156,39 +207,16 @@ def write_point_cloud(
     if n == 0:
         raise ValueError("refusing to write an empty point cloud (N = 0)")
     rgb = _check_rgb(rgb, n)
-    if normals is not None:
-        normals = _check_xyz(normals, "normals")
-        if len(normals) != n:
-            raise ValueError(f"normals must be ({n}, 3), got {normals.shape}")
-    # The records packed into one array and written a block at a time: open3d's writer (RPly)
-    # writes value by value and holds Python's lock throughout (the bench pair's 2.6 M points:
-    # 0.41 s, while the COLMAP model could not be built beside it). One array for all the
-    # points took 0.35 s the first time in a process, most of it in the kernel filling its
-    # 71 MB of new pages; a block of :data:`_WRITE_BLOCK` reused, 0.04-0.10 s.
-    fields = [(a, "<f4") for a in "xyz"]
-    if normals is not None:
-        fields += [(a, "<f4") for a in ("nx", "ny", "nz")]
-    if rgb is not None:
-        fields += [(a, "u1") for a in ("red", "green", "blue")]
-    rec = np.empty(min(n, _WRITE_BLOCK), np.dtype(fields))
-    names = {"<f4": "float", "u1": "uchar"}
-    header = "".join(["ply\nformat binary_little_endian 1.0\ncomment Created by sefm-recon\n",
-                      f"element vertex {n}\n", *(f"property {names[t]} {a}\n" for a, t in fields), "end_header\n"])
+    normals = _check_normals(normals, n)
+    # numpy's records: open3d's writer (RPly) writes value by value and holds Python's lock
+    # throughout (the bench pair's 2.6 M points: 0.41 s, while the COLMAP model could not be
+    # built beside it)
+    vertex = _vertex_dtype("<f4", normals is not None, rgb is not None)
     with atomic_path(path) as tmp:
         with open(tmp, "wb") as f:
-            f.write(header.encode("ascii"))
-            for s in range(0, n, len(rec)):
-                block = rec[:min(len(rec), n - s)]
-                for k, a in enumerate("xyz"):
-                    block[a] = xyz[s:s + len(block), k]
-                if normals is not None:
-                    for k, a in enumerate(("nx", "ny", "nz")):
-                        block[a] = normals[s:s + len(block), k]
-                if rgb is not None:
-                    for k, a in enumerate(("red", "green", "blue")):
-                        block[a] = rgb[s:s + len(block), k]
-                f.write(block.view(np.uint8).data)  # (numpy's tofile says "requested and written", no errno)
-        check_written(tmp, n * rec.itemsize)
+            f.write(_ply_header(vertex, n))
+            size = _write_vertices(f, vertex, xyz, normals, rgb)
+        check_written(tmp, size)
     log.debug("wrote %d points to %s", n, path)
     return path
 
@@ -298,40 +326,20 @@ def write_mesh(
     if triangles.size and (triangles.min() < 0 or triangles.max() >= v):
         raise ValueError("triangle indices out of range")
     vertex_colors = _check_rgb(vertex_colors, v, "vertex_colors")
-    if vertex_normals is not None:
-        vertex_normals = _check_xyz(vertex_normals, "vertex_normals")
-        if len(vertex_normals) != v:
-            raise ValueError(f"vertex_normals must be ({v}, 3), got {vertex_normals.shape}")
+    vertex_normals = _check_normals(vertex_normals, v, "vertex_normals")
     # numpy's records, as for the point cloud: open3d's writer is as quick on a mesh of the
     # default grid's size, but importing open3d took 0.9 s of every `pair` run that needs
     # it for nothing else (its write stage 1.1 s in a fresh process, 0.45 s once imported)
-    fields = [(a, "<f8") for a in "xyz"]
-    if vertex_normals is not None:
-        fields += [(a, "<f8") for a in ("nx", "ny", "nz")]
-    if vertex_colors is not None:
-        fields += [(a, "u1") for a in ("red", "green", "blue")]
-    rec = np.empty(v, np.dtype(fields))
-    for k, a in enumerate("xyz"):
-        rec[a] = vertices[:, k]
-    if vertex_normals is not None:
-        for k, a in enumerate(("nx", "ny", "nz")):
-            rec[a] = vertex_normals[:, k]
-    if vertex_colors is not None:
-        for k, a in enumerate(("red", "green", "blue")):
-            rec[a] = vertex_colors[:, k]
+    vertex = _vertex_dtype("<f8", vertex_normals is not None, vertex_colors is not None)
     faces = np.empty(len(triangles), np.dtype([("n", "u1"), ("v", "<u4", (3,))]))
     faces["n"] = 3
     faces["v"] = triangles
-    names = {"<f8": "double", "u1": "uchar"}
-    header = "".join(["ply\nformat binary_little_endian 1.0\ncomment Created by sefm-recon\n",
-                      f"element vertex {v}\n", *(f"property {names[t]} {a}\n" for a, t in fields),
-                      f"element face {len(faces)}\nproperty list uchar uint vertex_indices\nend_header\n"])
     with atomic_path(path) as tmp:
         with open(tmp, "wb") as f:
-            f.write(header.encode("ascii"))
-            f.write(rec.view(np.uint8).data)
+            f.write(_ply_header(vertex, v, f"element face {len(faces)}\nproperty list uchar uint vertex_indices\n"))
+            size = _write_vertices(f, vertex, vertices, vertex_normals, vertex_colors)
             f.write(faces.view(np.uint8).data)
-        check_written(tmp, rec.nbytes + faces.nbytes)
+        check_written(tmp, size + faces.nbytes)
     log.debug("wrote mesh (%d vertices, %d triangles) to %s", v, len(triangles), path)
     return path
 
