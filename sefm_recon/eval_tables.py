@@ -86,6 +86,7 @@ SGM_ABLATIONS: dict[str, list[str]] = {
     "- holes of plain planes filled": ["sgm.planes=false"],
     "- matches without signal on plain planes moved onto them": ["sgm.plane_snap=false"],
     "- matches of plain regions mostly unmatched and on no one plane dropped": ["sgm.scattered_check=false"],
+    "- a plane aligned by the intensities kept there where its halves agree": ["sgm.aligned_planes=false"],
     "- small plain regions on the plane of their rim": ["sgm.rim_planes=false"],
 }
 

@@ -388,11 +388,12 @@ def test_the_plain_cells_dropped_beside_an_occlusion_are_wrong_far_more_often():
     check drops are wrong (more than 1 px off, or hidden in image 2) far more often than
     the matches overall, and most of the hidden strip is left unmatched. Without the
     half-size fill and check, which leave the check less to drop (measured with the fill:
-    240 cells, 11 % wrong against 2.5 %; with the check alone, 468); measured without: 572
-    cells, 27 % wrong against 2.7 %, the strip 29 % matched without the check, 23 % with."""
+    240 cells, 11 % wrong against 2.5 %; with the check alone, 468); measured without: 400
+    cells, 39 % wrong against 2.7 % (572 and 27 % while the plain regions' planes were
+    homographies), the strip 23 % matched with the check."""
     at, wrong, kept, d = _cells_a_check_drops("sgm.occlusion_check", plain=(70, 150),
                                               extra=("sgm.half_fill=false", "sgm.half_check=false"))
-    assert at.sum() > 500
+    assert at.sum() > 300
     assert wrong[at].mean() > 5 * wrong.mean()
     strip = np.zeros(d.shape, bool)
     ij_kept = np.array(sorted(kept))

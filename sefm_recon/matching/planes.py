@@ -3,19 +3,23 @@
 Semi-global matching leaves much of a plain surface unmatched: its windows carry too
 little signal for the uniqueness test, or only ties (:func:`.checks.drop_range_ends`).
 Where such a surface is one plane and enough of it did match, the plane is known:
-the matches on it, each a plain window of the same surface, fit one homography
-between the images. Image 1 is cut into plain regions at its intensity edges
-(:func:`plain_regions`); in each large region whose matches mostly agree on a plane
-(:func:`fill_planes`), the unmatched pixels among the plane's matches
-(:data:`MIN_HOLE_SUPPORT`) take the partner that plane gives, moved onto their
-epipolar line, unless a nearer surface's match already lands there in image 2
-(the pixel is hidden in view 2).
+the matches on it, each a plain window of the same surface, fit one plane of the scene
+(:func:`_plane_support`: 3 parameters with the pose given). Image 1 is cut into plain
+regions at its intensity edges (:func:`plain_regions`); in each large region whose
+matches mostly agree on a plane (:func:`fill_planes`), the plane is aligned by the
+images' intensities where its halves agree on it (:mod:`.plane_align`), and the unmatched
+pixels among the plane's matches (:data:`MIN_HOLE_SUPPORT`) take the partner that plane
+gives, unless a nearer surface's match already lands there in image 2 (the pixel is
+hidden in view 2).
 
 A region whose matches are few (:data:`MIN_MATCHED_SHARE`), or split over several
 depths (a wrong patch of the matcher, a curved or folded surface), is not filled:
 the fill only extends what the matcher found. Where they cover under half of it and
-lie mostly off any one plane, the matcher found no surface there at all, and they
-are dropped (:data:`MAX_SCATTERED_SUPPORT`); the estimates the repeat check dropped
+lie mostly off any one plane, either SGM's estimates follow the noise of a weakly
+textured plane, which the intensities of all its pixels align (:mod:`.plane_align`):
+then its matches near it move onto it, the others are dropped and its holes filled;
+or the matcher found no surface there at all, and they are dropped
+(:data:`MAX_SCATTERED_SUPPORT`); the estimates the repeat check dropped
 there (:mod:`.periodic`) count in that test with them. Where they do mostly lie on one plane,
 the ones off it face the same test: patches carried over the plain surface on no
 one plane, or on one within SGM's wave about the first, are dropped, a second surface in
@@ -46,6 +50,7 @@ import numpy as np
 from numba import njit
 
 from ..arrays import quiet_windows
+from .plane_align import align_images, align_plane, halves_agree
 
 __all__ = ["PlaneFill", "fill_planes", "plain_regions"]
 
@@ -71,11 +76,11 @@ MIN_MATCHED_SHARE = 0.2
 #: A region under this share matched is mostly unmatched: its matches are dropped where
 #: they lie on no one plane (:data:`MAX_SCATTERED_SUPPORT`).
 MOSTLY_UNMATCHED_SHARE = 0.5
-#: ...and those whose matches do not mostly lie on one plane: within 1 px of the homography
+#: ...and those whose matches do not mostly lie on one plane: within 1 px of the plane
 #: (RANSAC's threshold, the precision the matches are judged at) for at least this share.
 MIN_PLANE_SUPPORT = 0.6
 #: A region under :data:`MOSTLY_UNMATCHED_SHARE` matched whose matches mostly lie off one plane
-#: (under this share within 1 px of the homography RANSAC finds) holds no surface the matcher
+#: (under this share within 1 px of the plane RANSAC finds) holds no surface the matcher
 #: found: its matches are patches at several depths, each carried over a plain surface by the
 #: aggregation paths from its own noise, and they are dropped. The generated scenes' plain
 #: floors under sensor noise: 8-23 % matched, 11-37 % on one plane, their matches 14-16 %
@@ -103,8 +108,8 @@ MAX_SCATTERED_SUPPORT = 0.5
 #: Fewer than this many matches off the plane are too few for a homography (4 points fix one,
 #: and RANSAC needs some to spare) and stay.
 MIN_OFF_PLANE = 8
-#: Matches a region's homography is fitted from at most (a seeded random subset): a plane
-#: has 8 parameters; thousands fix it, millions only cost RANSAC's time.
+#: Matches a region's plane (or homography) is fitted from at most (a seeded random subset):
+#: it has 3 parameters (8); thousands fix it, millions only cost RANSAC's time.
 MAX_FIT_MATCHES = 5000
 #: A pixel is filled only inside the plane's matches, not beyond them: where at least this
 #: share of the region's pixels within :data:`HOLE_WINDOW` px of it hold a match on the plane.
@@ -286,11 +291,14 @@ def _on_lines(F: np.ndarray, uv1: np.ndarray, uv2: np.ndarray) -> np.ndarray:
     return uv2 - s[:, None] * l[:, :2]
 
 
-def _plane_support(uv1: np.ndarray, uv2: np.ndarray, idx: np.ndarray, rng: np.random.Generator,
-                   seed: int) -> tuple[np.ndarray | None, np.ndarray]:
+def _homography_support(uv1: np.ndarray, uv2: np.ndarray, idx: np.ndarray, rng: np.random.Generator,
+                        seed: int) -> tuple[np.ndarray | None, np.ndarray]:
     """The homography RANSAC finds for the matches ``idx`` (of ``uv1``, ``uv2``: (N, 2)) from
     at most :data:`MAX_FIT_MATCHES` of them, and which of them lie within 1 px of it ((len(idx),)
-    bool); (None, all False) where RANSAC finds none."""
+    bool); (None, all False) where RANSAC finds none. Its 8 parameters follow a gently curved
+    surface too (a lampshade): the test of whether matches form a surface at all
+    (:func:`_scattered_with`, the second surface of :data:`MIN_OFF_PLANE`), where the plane of
+    the scene's 3 (:func:`_plane_support`) would count a curved one as scattered."""
     fit = idx if len(idx) <= MAX_FIT_MATCHES else rng.choice(idx, MAX_FIT_MATCHES, replace=False)
     cv2.setRNGSeed(seed)
     H, _ = cv2.findHomography(uv1[fit], uv2[fit], cv2.RANSAC, 1.0)
@@ -300,17 +308,103 @@ def _plane_support(uv1: np.ndarray, uv2: np.ndarray, idx: np.ndarray, rng: np.ra
     return H, np.linalg.norm(pred - uv2[idx], axis=1) <= 1.0
 
 
+def _plane_support(pose: _Pose, uv1: np.ndarray, uv2: np.ndarray, idx: np.ndarray, rng: np.random.Generator,
+                   ) -> tuple[np.ndarray | None, np.ndarray]:
+    """The plane of the scene (:func:`_inverse_depth_plane`) that RANSAC finds for the matches
+    ``idx`` (of ``uv1``, ``uv2``: (N, 2)) from at most :data:`MAX_FIT_MATCHES` of them, and
+    which of them lie within 1 px of it ((len(idx),) bool); (None, all False) where none is found.
+
+    The pose fixes all but 3 of a plane's homography's 8 parameters (:func:`_inverse_depth_plane`):
+    fitted with all 8, a plain floor's matches, clustered in a band of it, gave a homography
+    within 1 px of the truth on that band only (generated seed 29: 22 % of the floor), and the
+    floor's matches counted as scattered over several surfaces."""
+    fit = idx if len(idx) <= MAX_FIT_MATCHES else rng.choice(idx, MAX_FIT_MATCHES, replace=False)
+    f1, f2 = np.ascontiguousarray(uv1[fit], np.float64), np.ascontiguousarray(uv2[fit], np.float64)
+    w = _inverse_depths(f1, f2, pose.K2 @ pose.R @ pose.K1inv, pose.K2 @ pose.t)
+    good = np.flatnonzero(w > 0)
+    if len(good) < 3:
+        return None, np.zeros(len(idx), bool)
+    draws = rng.integers(0, len(good), size=(RANSAC_DRAWS, 3))
+    abc = _ransac_plane(f1, f2, w, good[draws], 1.0, *pose)
+    if np.isnan(abc[0]):
+        return None, np.zeros(len(idx), bool)
+    on = _plane_distance(pose, f1, f2, abc) <= 1.0
+    refit = _inverse_depth_plane(f1[on], 1.0 / w[on]) if np.count_nonzero(on) >= 3 else None
+    if refit is not None and np.count_nonzero(_plane_distance(pose, f1, f2, refit) <= 1.0) >= np.count_nonzero(on):
+        abc = refit
+    return abc, _plane_distance(pose, uv1[idx], uv2[idx], abc) <= 1.0
+
+
+def _homography(pose: _Pose, abc: np.ndarray) -> np.ndarray:
+    """(3, 3) the homography from image 1 to image 2 that the plane ``abc`` induces (COLMAP positions)."""
+    H = pose.K2 @ (pose.R @ pose.K1inv + np.outer(pose.t, abc))
+    return H / H[2, 2]
+
+
+#: Draws of three matches RANSAC tries: a plane among a third of a region's matches (the
+#: rest patches at other depths) is drawn with 0.999 confidence in 252 (1 - (1/3)^3 per draw).
+RANSAC_DRAWS = 256
+
+
+@njit(cache=True)
+def _inverse_depths(uv1, uv2, A, e):
+    """(N,) the inverse camera-1 depth each match ``uv1``, ``uv2`` (N, 2) gives, least squares
+    along its epipolar line (``q ~ A p + e w``, ``A = K2 R K1^-1`` (3, 3), ``e = K2 t`` (3,));
+    0 where the match lies at the epipole."""
+    n = uv1.shape[0]
+    out = np.zeros(n)
+    for i in range(n):
+        p0, p1 = uv1[i, 0], uv1[i, 1]
+        a0 = A[0, 0] * p0 + A[0, 1] * p1 + A[0, 2]
+        a1 = A[1, 0] * p0 + A[1, 1] * p1 + A[1, 2]
+        a2 = A[2, 0] * p0 + A[2, 1] * p1 + A[2, 2]
+        q0, q1 = uv2[i, 0], uv2[i, 1]
+        # q x (A p) and q x e, q = (q0, q1, 1)
+        c0, c1, c2 = q1 * a2 - a1, a0 - q0 * a2, q0 * a1 - q1 * a0
+        d0, d1, d2 = q1 * e[2] - e[1], e[0] - q0 * e[2], q0 * e[1] - q1 * e[0]
+        dd = d0 * d0 + d1 * d1 + d2 * d2
+        if dd > 1e-12:
+            out[i] = -(c0 * d0 + c1 * d1 + c2 * d2) / dd
+    return out
+
+
+@njit(cache=True)
+def _ransac_plane(uv1, uv2, w, draws, px, K1inv, R, t, K2):
+    """The plane ``(a, b, c)`` (1 / z = a u + b v + c) through three matches of ``draws``
+    (D, 3) indices with the most matches within ``px`` of it (NaNs where every draw is
+    degenerate)."""
+    best = np.full(3, np.nan)
+    most = -1
+    abc = np.empty(3)
+    for d in range(draws.shape[0]):
+        i, j, k = draws[d, 0], draws[d, 1], draws[d, 2]
+        # w = a u + b v + c through the three, by Cramer's rule on their differences from the first
+        du1, dv1, dw1 = uv1[j, 0] - uv1[i, 0], uv1[j, 1] - uv1[i, 1], w[j] - w[i]
+        du2, dv2, dw2 = uv1[k, 0] - uv1[i, 0], uv1[k, 1] - uv1[i, 1], w[k] - w[i]
+        det = du1 * dv2 - du2 * dv1
+        if abs(det) < 1.0:  # (px^2: three pixels on one line)
+            continue
+        abc[0] = (dw1 * dv2 - dw2 * dv1) / det
+        abc[1] = (du1 * dw2 - du2 * dw1) / det
+        abc[2] = w[i] - abc[0] * uv1[i, 0] - abc[1] * uv1[i, 1]
+        dist = _distance_to_plane(uv1, uv2, abc, K1inv, R, t, K2)
+        count = np.count_nonzero(dist <= px)
+        if count > most:
+            most, best = count, abc.copy()
+    return best
+
+
 def _scattered_with(uv1: np.ndarray, uv2: np.ndarray, repeats: tuple[np.ndarray, np.ndarray], mine: np.ndarray,
                     area: int, seed: int) -> bool:
     """Whether a region's matches (``uv1``, ``uv2``: (N, 2)) and the ``repeats`` of the region
     (``mine``: (M,) bool over them) are together fewer than :data:`MOSTLY_UNMATCHED_SHARE` of
     its ``area`` and under :data:`MAX_SCATTERED_SUPPORT` of them on one plane (RANSAC's
-    homography, :func:`_plane_support`, its subset drawn by a generator of its own: the other
+    homography, :func:`_homography_support`, its subset drawn by a generator of its own: the other
     regions' draws stay as they were); False where the region holds no repeat."""
     if not mine.any() or len(uv1) + np.count_nonzero(mine) >= MOSTLY_UNMATCHED_SHARE * area:
         return False
     all1, all2 = np.concatenate([uv1, repeats[0][mine]]), np.concatenate([uv2, repeats[1][mine]])
-    _, on = _plane_support(all1, all2, np.arange(len(all1)), np.random.default_rng(seed), seed)
+    _, on = _homography_support(all1, all2, np.arange(len(all1)), np.random.default_rng(seed), seed)
     return bool(np.mean(on) < MAX_SCATTERED_SUPPORT)
 
 
@@ -530,8 +624,56 @@ def _rim_planes(tv, pose: _Pose, labels: np.ndarray, stats: np.ndarray, uv1: np.
     return add1, add2, moved, planes
 
 
+def _among_plane_matches(labels: np.ndarray, stats: np.ndarray, k: int, on1: np.ndarray):
+    """Over region ``k``'s bounding box and a :data:`HOLE_WINDOW` window's reach around it:
+    ``(x0, y0, region, among)``, the box's top-left pixel, which of its pixels are the
+    region's, and which have at least :data:`MIN_HOLE_SUPPORT` of the region's pixels in
+    their window holding one of the matches ``on1`` (N, 2) (those on its plane, image 1):
+    the pixels among the plane's matches, not a surface beyond them ((h, w) bool each)."""
+    h, w = labels.shape
+    m = HOLE_WINDOW // 2
+    x0, y0, bw, bh = stats[k, :4]
+    x0, y0, x1, y1 = max(x0 - m, 0), max(y0 - m, 0), min(x0 + bw + m, w), min(y0 + bh + m, h)
+    region = (labels[y0:y1, x0:x1] == k).astype(np.float32)
+    on = np.zeros_like(region)
+    inl = on1.astype(np.int64)
+    on[inl[:, 1] - y0, inl[:, 0] - x0] = 1.0
+    win = (HOLE_WINDOW, HOLE_WINDOW)
+    among = (cv2.boxFilter(on, -1, win, normalize=False)
+             >= MIN_HOLE_SUPPORT * cv2.boxFilter(region, -1, win, normalize=False))
+    return x0, y0, region > 0, among
+
+
+#: Pixels a region's plane is aligned on at most (a seeded random subset of those among its
+#: matches, :func:`_aligned_surface`): 3 parameters, and tens of thousands of pixels of a
+#: plain floor fix them to hundredths of a pixel; every pixel would cost the time of the
+#: whole image's.
+MAX_ALIGN_PIXELS = 40000
+
+
+def _aligned_surface(gray1: np.ndarray, gray2: np.ndarray, pose: _Pose, labels: np.ndarray, stats: np.ndarray, k: int,
+                     on1: np.ndarray, abc: np.ndarray, rng: np.random.Generator) -> np.ndarray | None:
+    """The plane ``abc`` of region ``k`` of ``labels`` aligned by the images' intensities
+    (:func:`.plane_align.align_plane`) on the region's pixels among its matches on that plane
+    (``on1``: (N, 2) in image 1; :data:`MIN_HOLE_SUPPORT` of a :data:`HOLE_WINDOW` window),
+    where its halves agree on it (:func:`.plane_align.halves_agree`); else None. ``gray1``,
+    ``gray2``: the (H, W) uint8 grey images."""
+    x0, y0, region, among = _among_plane_matches(labels, stats, k, on1)
+    ys, xs = np.nonzero(region & among)
+    if len(ys) > MAX_ALIGN_PIXELS:
+        pick = np.sort(rng.choice(len(ys), MAX_ALIGN_PIXELS, replace=False))
+        ys, xs = ys[pick], xs[pick]
+    px = np.column_stack([xs + x0 + 0.5, ys + y0 + 0.5])
+    A, e = pose.K2 @ pose.R @ pose.K1inv, pose.K2 @ pose.t
+    q = np.column_stack([px, np.ones(len(px))]) @ _homography(pose, abc).T
+    images = align_images(gray1, gray2, px, q[:, :2] / q[:, 2:3])
+    aligned = align_plane(images, A, e, px, abc)
+    return aligned if halves_agree(images, A, e, px, aligned) else None
+
+
 def fill_planes(gray1: np.ndarray, size2: tuple[int, int], tv, uv1: np.ndarray, uv2: np.ndarray, X: np.ndarray,
                 *, fill: bool = True, snap: bool = True, drop: bool = True, rims: bool = True,
+                gray2: np.ndarray | None = None,
                 repeats: tuple[np.ndarray, np.ndarray] | None = None, seed: int = 0) -> PlaneFill:
     """Partners for the unmatched pixels of image 1's large plain regions whose matches lie on
     one plane (``fill``), for the matches without signal of the regions that are one plane
@@ -571,38 +713,55 @@ def fill_planes(gray1: np.ndarray, size2: tuple[int, int], tv, uv1: np.ndarray, 
     quiet = quiet_windows(gray1, SNAP_WINDOW, SNAP_LEVELS) if snap else None
     rng = np.random.default_rng(seed)
     add1, add2, moved, planes, dropped = [], [], [], [], []
-    m = HOLE_WINDOW // 2
     for k in big:
         idx = np.flatnonzero(lab == k)
         few = len(idx) < MOSTLY_UNMATCHED_SHARE * areas[k]
         fillable = len(idx) >= MIN_MATCHED_SHARE * areas[k]
         if (few and not drop and not fillable) or len(idx) < 4:
             continue
-        H, on_plane = _plane_support(uv1, uv2, idx, rng, seed)
-        if H is None:
+        abc, on_plane = _plane_support(pose, uv1, uv2, idx, rng)
+        if abc is None:
             continue
         support = np.mean(on_plane)  # (judged on every match of the region, before any is dropped)
         if few and rep_lab is not None and _scattered_with(uv1[idx], uv2[idx], repeats, rep_lab == k, areas[k], seed):
             dropped.append(idx)
             continue
-        if few and support < MAX_SCATTERED_SUPPORT:  # no surface the matcher found
+        aligned = None
+        if few and support < MAX_SCATTERED_SUPPORT and gray2 is not None:
+            aligned = _aligned_surface(gray1, gray2, pose, labels, stats, k, uv1[idx[on_plane]], abc,
+                                       np.random.default_rng(seed))  # (the other regions' draws stay)
+        if few and support < MAX_SCATTERED_SUPPORT and aligned is None:  # no surface the matcher found
             if drop:
                 dropped.append(idx)
             continue
-        if few and drop and np.count_nonzero(~on_plane) >= MIN_OFF_PLANE:
+        if aligned is not None:
+            # one plane under the region's noise: its matches near it move onto it, the rest go
+            abc = aligned
+            near = _plane_distance(pose, uv1[idx], uv2[idx], abc) <= RIM_SNAP_PX
+            if drop:
+                dropped.append(idx[~near])
+                gone = uv1[idx[~near]].astype(np.int64)
+                index[gone[:, 1], gone[:, 0]] = -1
+                idx = idx[near]
+            on_plane = _plane_distance(pose, uv1[idx], uv2[idx], abc) <= RIM_SNAP_PX
+            if snap:
+                moved.append(idx[on_plane])
+                planes.append(np.broadcast_to(abc, (int(on_plane.sum()), 3)))
+        elif few and drop and np.count_nonzero(~on_plane) >= MIN_OFF_PLANE:
             # the matches off the region's plane: a second surface (kept) or patches (dropped)
             off = idx[~on_plane]
-            H_off, on_second = _plane_support(uv1, uv2, off, rng, seed)
-            if H_off is None or np.mean(on_second) < MAX_SCATTERED_SUPPORT or _same_plane(H, H_off, uv1[off]):
+            H_off, on_second = _homography_support(uv1, uv2, off, rng, seed)
+            if (H_off is None or np.mean(on_second) < MAX_SCATTERED_SUPPORT
+                    or _same_plane(_homography(pose, abc), H_off, uv1[off])):
                 dropped.append(off)
                 idx, on_plane = idx[on_plane], on_plane[on_plane]
                 gone = uv1[off].astype(np.int64)  # their pixels are holes of the plane now
                 index[gone[:, 1], gone[:, 0]] = -1
-        if not fillable:  # nothing to fill or snap: the matches stay
+        if aligned is None and not fillable:  # nothing to fill or snap: the matches stay
             continue
-        if support < MIN_PLANE_SUPPORT or not (fill or snap):
+        if aligned is None and (support < MIN_PLANE_SUPPORT or not (fill or snap)):
             continue
-        if snap:
+        if snap and aligned is None:
             own1 = uv1[idx]  # the region's matches in image 1
             plane, near = _snap_plane(pose, own1, uv2[idx], X[idx, 2], on_plane)
             if plane is not None:
@@ -611,21 +770,19 @@ def fill_planes(gray1: np.ndarray, size2: tuple[int, int], tv, uv1: np.ndarray, 
                 planes.append(np.broadcast_to(plane, (int(near.sum()), 3)))
         if not fill:
             continue
-        # holes of the plane's matches, not a surface beyond them (MIN_HOLE_SUPPORT), over the
-        # region's bounding box and the window's reach around it
-        x0, y0, bw, bh = stats[k, :4]
-        x0, y0, x1, y1 = max(x0 - m, 0), max(y0 - m, 0), min(x0 + bw + m, w), min(y0 + bh + m, h)
-        region = (labels[y0:y1, x0:x1] == k).astype(np.float32)
-        on = np.zeros_like(region)
-        inl = uv1[idx[on_plane]].astype(np.int64)
-        on[inl[:, 1] - y0, inl[:, 0] - x0] = 1.0
-        win = (HOLE_WINDOW, HOLE_WINDOW)
-        dense = cv2.boxFilter(on, -1, win, normalize=False) >= MIN_HOLE_SUPPORT * cv2.boxFilter(region, -1, win, normalize=False)
-        ys, xs = np.nonzero((region > 0) & (index[y0:y1, x0:x1] < 0) & dense)
+        # holes of the plane's matches, not a surface beyond them (MIN_HOLE_SUPPORT)
+        x0, y0, region, among = _among_plane_matches(labels, stats, k, uv1[idx[on_plane]])
+        ys, xs = np.nonzero(region & (index[y0:y0 + region.shape[0], x0:x0 + region.shape[1]] < 0) & among)
         if len(ys) == 0:
             continue
+        if aligned is None and gray2 is not None and len(ys) >= MIN_FILL_SHARE * len(uv1):
+            # the fill's plane aligned where its halves agree (not for a fill too small to keep)
+            refined = _aligned_surface(gray1, gray2, pose, labels, stats, k, uv1[idx[on_plane]], abc,
+                                       np.random.default_rng(seed))  # (the other regions' draws stay)
+            if refined is not None:
+                abc = refined
         p1 = np.column_stack([xs + x0 + 0.5, ys + y0 + 0.5])
-        p2 = _on_lines(tv.F, p1, cv2.perspectiveTransform(p1.reshape(-1, 1, 2), H).reshape(-1, 2))
+        p2 = _on_lines(tv.F, p1, cv2.perspectiveTransform(p1.reshape(-1, 1, 2), _homography(pose, abc)).reshape(-1, 2))
         inside = (p2[:, 0] >= 0) & (p2[:, 0] < size2[0]) & (p2[:, 1] >= 0) & (p2[:, 1] < size2[1])
         add1.append(p1[inside])
         add2.append(p2[inside])

@@ -854,7 +854,8 @@ def match_pair_sgm(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config,
     n_planes = n_moved = n_scattered = 0
     if opt.planes or opt.plane_snap or opt.scattered_check:
         pf = fill_planes(to_gray(img1), size2, tv, uv1, uv2, X, fill=opt.planes, snap=opt.plane_snap,
-                         drop=opt.scattered_check, rims=opt.rim_planes, repeats=repeats)
+                         drop=opt.scattered_check, rims=opt.rim_planes, repeats=repeats,
+                         gray2=to_gray(img2) if opt.aligned_planes else None)
         n_planes, n_moved, n_scattered = len(pf.uv1), len(pf.moved), len(pf.dropped)
         uv2[pf.moved] = pf.moved_uv2
         X[pf.moved] = pf.moved_xyz

@@ -1,0 +1,122 @@
+"""A plane aligned between the images by their intensities (matching/plane_align.py), on known answers."""
+
+import cv2
+import numpy as np
+
+from sefm_recon.geometry.triangulate import triangulate
+from sefm_recon.geometry.two_view import TwoView
+from sefm_recon.matching.plane_align import align_images, align_plane, halves_agree
+from sefm_recon.matching.planes import fill_planes
+
+W, H, F = 320, 240, 300.0
+K = np.array([[F, 0, W / 2], [0, F, H / 2], [0, 0, 1.0]])
+TV = TwoView(K, K, np.eye(3), np.array([-1.0, 0, 0]))  # lateral, unit baseline: x2 = x1 - F / z
+A, E = K @ TV.R @ np.linalg.inv(K), K @ TV.t
+# a floor: parallax F / z from 8 px at the top row to 16 px at the bottom one (COLMAP positions)
+FLOOR = np.array([0.0, 8.0 / (H * F), 8.0 / F])
+
+
+def _parallax(abc, uv):
+    return F * (uv @ abc[:2] + abc[2])
+
+
+def _texture(seed, amplitude, blur=3.0):
+    """A faint, smooth texture: (H, W) float32 about 128 with ``amplitude`` grey levels' deviation."""
+    g = cv2.GaussianBlur(np.random.default_rng(seed).normal(size=(H, W)).astype(np.float32), (0, 0), blur)
+    return 128 + g * (amplitude / g.std())
+
+
+def _view2(image1, parallax_of_row, gain=0.8, offset=20.0, noise=1.0, seed=1):
+    """Image 2 of a surface whose parallax depends on the row (``parallax_of_row``: (H,) px):
+    image 1 shifted left by it, under another gain and offset and its own sensor noise; uint8."""
+    ys, xs = np.mgrid[0:H, 0:W].astype(np.float32)
+    img = cv2.remap(image1, xs + parallax_of_row[:, None].astype(np.float32), ys, cv2.INTER_LINEAR,
+                    borderMode=cv2.BORDER_REFLECT)
+    img = gain * img + offset + np.random.default_rng(seed).normal(scale=noise, size=img.shape)
+    return np.clip(np.rint(img), 0, 255).astype(np.uint8)
+
+
+def _floor_pair(amplitude=3.0, seed=0):
+    one = _texture(seed, amplitude)
+    rows = np.arange(H) + 0.5
+    two = _view2(one, F * (rows * FLOOR[1] + FLOOR[2]))
+    return np.clip(np.rint(one), 0, 255).astype(np.uint8), two
+
+
+def _images(one, two, px, abc=FLOOR):
+    """The aligned images about ``px`` and their partners on ``abc``."""
+    return align_images(one, two, px, px - np.column_stack([_parallax(abc, px), np.zeros(len(px))]))
+
+
+def _pixels(step=2, margin=24):
+    ys, xs = np.mgrid[margin:H - margin:step, margin:W - margin:step]
+    return np.column_stack([xs.ravel() + 0.5, ys.ravel() + 0.5])
+
+
+def test_a_faint_floor_3_px_off_is_aligned_to_a_tenth_of_a_pixel_under_another_gain_and_offset():
+    """Texture of 3 grey levels under 1 level of noise, image 2 at 0.8 x the brightness plus
+    20: started 3 px off at the bottom and 1 px at the top, the plane comes within 0.1 px."""
+    one, two = _floor_pair()
+    px = _pixels()
+    start = FLOOR + np.array([0.0, 2.0 / (H * F), 1.0 / F])
+    assert np.abs(_parallax(start, px) - _parallax(FLOOR, px)).max() > 2.5
+    got = align_plane(_images(one, two, px, start), A, E, px, start)
+    assert np.abs(_parallax(got, px) - _parallax(FLOOR, px)).max() < 0.1
+
+
+def test_the_halves_of_one_plane_agree_and_those_of_a_fold_or_of_noise_do_not():
+    """A fold, or a plain surface whose images hold only their own sensor noise (no signal
+    to align: each half's plane wanders), is no one plane the images fix."""
+    one, two = _floor_pair()
+    px = _pixels()
+    images = _images(one, two, px)
+    assert halves_agree(images, A, E, px, align_plane(images, A, E, px, FLOOR))
+    # the same texture on two planes, the upper half frontal at 10 px and the lower at 16 px
+    rows = np.arange(H)
+    fold = _view2(one.astype(np.float32), np.where(rows < H // 2, 10.0, 16.0))
+    mid = np.array([0.0, 0.0, 13.0 / F])
+    images = _images(one, fold, px, mid)
+    assert not halves_agree(images, A, E, px, align_plane(images, A, E, px, mid))
+    for seed in range(3):
+        rng = np.random.default_rng(seed)
+        grey1, grey2 = (np.clip(np.rint(128 + rng.normal(size=(H, W))), 0, 255).astype(np.uint8) for _ in range(2))
+        images = _images(grey1, grey2, px)
+        assert not halves_agree(images, A, E, px, align_plane(images, A, E, px, FLOOR))
+
+
+def _plain_floor_scene(seed=0):
+    """Image 1: the faint floor framed by strong texture (its own plain region); image 2 as
+    the floor gives it; and matches on 30 % of the floor's pixels, 40 % of them on the floor
+    (0.3 px noise) and the rest 2-8 px off it, as SGM's on a weakly textured floor."""
+    one, two = _floor_pair()
+    rng = np.random.default_rng(seed)
+    frame = np.ones((H, W), bool)
+    frame[12:H - 12, 12:W - 12] = False
+    one[frame] = rng.integers(0, 256, np.count_nonzero(frame))
+    px = _pixels(step=1, margin=16)
+    px = px[rng.random(len(px)) < 0.3]
+    right = rng.random(len(px)) < 0.4
+    err = np.where(right, rng.normal(scale=0.3, size=len(px)), rng.choice([-1, 1], len(px)) * rng.uniform(2, 8, len(px)))
+    uv2 = px - np.column_stack([_parallax(FLOOR, px) + err, np.zeros(len(px))])
+    X, ok, _ = triangulate(TV.K1, TV.K2, TV.R, TV.t, px, uv2)
+    return one, two, px[ok], uv2[ok], X[ok], np.abs(err[ok])
+
+
+def test_a_mostly_unmatched_floor_whose_plane_aligns_is_kept_moved_onto_it_and_filled():
+    """Without image 2 the floor's matches lie mostly off one plane and go (the scattered
+    check); with it the plane aligns and its halves agree: the matches within 3 px of it move
+    onto it, the others go, and the unmatched pixels among them take its partners."""
+    one, two, uv1, uv2, X, err = _plain_floor_scene()
+    size = (W, H)
+    region = np.zeros(len(uv1), bool)  # the floor's matches (the region stops short of its edges)
+    region[fill_planes(one, size, TV, uv1, uv2, X).dropped] = True
+    assert region.mean() > 0.95
+    out = fill_planes(one, size, TV, uv1, uv2, X, gray2=two)
+    gone = np.zeros(len(uv1), bool)
+    gone[out.dropped] = True
+    assert not gone[err <= 2.9].any() and gone[region & (err > 3.1)].all()
+    moved_par = out.moved_uv2[:, 0] - uv1[out.moved, 0]
+    assert np.abs(-moved_par - _parallax(FLOOR, uv1[out.moved])).max() < 0.15
+    assert len(out.uv1) > 2 * len(uv1)  # the holes between them
+    assert np.abs(out.uv1[:, 0] - out.uv2[:, 0] - _parallax(FLOOR, out.uv1)).max() < 0.15
+    assert np.abs(out.uv1[:, 1] - out.uv2[:, 1]).max() < 1e-6  # on their epipolar lines
