@@ -120,3 +120,21 @@ def test_a_mostly_unmatched_floor_whose_plane_aligns_is_kept_moved_onto_it_and_f
     assert len(out.uv1) > 2 * len(uv1)  # the holes between them
     assert np.abs(out.uv1[:, 0] - out.uv2[:, 0] - _parallax(FLOOR, out.uv1)).max() < 0.15
     assert np.abs(out.uv1[:, 1] - out.uv2[:, 1]).max() < 1e-6  # on their epipolar lines
+
+
+def test_a_region_whose_matches_are_too_sparse_to_align_is_dropped_as_before():
+    """Matches on 1 % of the floor, at depths drawn at random: too sparse for any pixel to
+    lie among matches on one plane, so there is nothing to align and they go (as without
+    image 2), with no error."""
+    one, two, *_ = _plain_floor_scene()
+    rng = np.random.default_rng(7)
+    px = _pixels(step=1, margin=16)
+    px = px[rng.random(len(px)) < 0.01]
+    uv2 = px - np.column_stack([rng.uniform(4, 30, len(px)), np.zeros(len(px))])
+    X, ok, _ = triangulate(TV.K1, TV.K2, TV.R, TV.t, px, uv2)
+    px, uv2, X = px[ok], uv2[ok], X[ok]
+    without = fill_planes(one, (W, H), TV, px, uv2, X)
+    out = fill_planes(one, (W, H), TV, px, uv2, X, gray2=two)
+    assert len(without.dropped) > 0.9 * len(px)
+    np.testing.assert_array_equal(out.dropped, without.dropped)
+    assert len(out.uv1) == 0 and len(out.moved) == 0

@@ -50,7 +50,7 @@ import numpy as np
 from numba import njit
 
 from ..arrays import quiet_windows
-from .plane_align import align_images, align_plane, halves_agree
+from .plane_align import MIN_HALF_PIXELS, align_images, align_plane, halves_agree
 
 __all__ = ["PlaneFill", "fill_planes", "plain_regions"]
 
@@ -660,6 +660,8 @@ def _aligned_surface(gray1: np.ndarray, gray2: np.ndarray, pose: _Pose, labels: 
     ``gray2``: the (H, W) uint8 grey images."""
     x0, y0, region, among = _among_plane_matches(labels, stats, k, on1)
     ys, xs = np.nonzero(region & among)
+    if len(ys) < 2 * MIN_HALF_PIXELS:  # (matches too sparse for any pixel: no halves to compare)
+        return None
     if len(ys) > MAX_ALIGN_PIXELS:
         pick = np.sort(rng.choice(len(ys), MAX_ALIGN_PIXELS, replace=False))
         ys, xs = ys[pick], xs[pick]
