@@ -308,11 +308,12 @@ def _homography_support(uv1: np.ndarray, uv2: np.ndarray, idx: np.ndarray, rng: 
     return H, np.linalg.norm(pred - uv2[idx], axis=1) <= 1.0
 
 
-def _plane_support(pose: _Pose, uv1: np.ndarray, uv2: np.ndarray, idx: np.ndarray, rng: np.random.Generator,
-                   ) -> tuple[np.ndarray | None, np.ndarray]:
+def _plane_support(pose: _Pose, uv1: np.ndarray, uv2: np.ndarray, z: np.ndarray, idx: np.ndarray,
+                   rng: np.random.Generator) -> tuple[np.ndarray | None, np.ndarray]:
     """The plane of the scene (:func:`_inverse_depth_plane`) that RANSAC finds for the matches
-    ``idx`` (of ``uv1``, ``uv2``: (N, 2)) from at most :data:`MAX_FIT_MATCHES` of them, and
-    which of them lie within 1 px of it ((len(idx),) bool); (None, all False) where none is found.
+    ``idx`` (of ``uv1``, ``uv2``: (N, 2), at camera-1 depths ``z``: (N,)) from at most
+    :data:`MAX_FIT_MATCHES` of them, and which of them lie within 1 px of it ((len(idx),)
+    bool); (None, all False) where none is found.
 
     The pose fixes all but 3 of a plane's homography's 8 parameters (:func:`_inverse_depth_plane`):
     fitted with all 8, a plain floor's matches, clustered in a band of it, gave a homography
@@ -320,7 +321,7 @@ def _plane_support(pose: _Pose, uv1: np.ndarray, uv2: np.ndarray, idx: np.ndarra
     floor's matches counted as scattered over several surfaces."""
     fit = idx if len(idx) <= MAX_FIT_MATCHES else rng.choice(idx, MAX_FIT_MATCHES, replace=False)
     f1, f2 = np.ascontiguousarray(uv1[fit], np.float64), np.ascontiguousarray(uv2[fit], np.float64)
-    w = _inverse_depths(f1, f2, pose.K2 @ pose.R @ pose.K1inv, pose.K2 @ pose.t)
+    w = 1.0 / z[fit]
     good = np.flatnonzero(w > 0)
     if len(good) < 3:
         return None, np.zeros(len(idx), bool)
@@ -344,28 +345,6 @@ def _homography(pose: _Pose, abc: np.ndarray) -> np.ndarray:
 #: Draws of three matches RANSAC tries: a plane among a third of a region's matches (the
 #: rest patches at other depths) is drawn with 0.999 confidence in 252 (1 - (1/3)^3 per draw).
 RANSAC_DRAWS = 256
-
-
-@njit(cache=True)
-def _inverse_depths(uv1, uv2, A, e):
-    """(N,) the inverse camera-1 depth each match ``uv1``, ``uv2`` (N, 2) gives, least squares
-    along its epipolar line (``q ~ A p + e w``, ``A = K2 R K1^-1`` (3, 3), ``e = K2 t`` (3,));
-    0 where the match lies at the epipole."""
-    n = uv1.shape[0]
-    out = np.zeros(n)
-    for i in range(n):
-        p0, p1 = uv1[i, 0], uv1[i, 1]
-        a0 = A[0, 0] * p0 + A[0, 1] * p1 + A[0, 2]
-        a1 = A[1, 0] * p0 + A[1, 1] * p1 + A[1, 2]
-        a2 = A[2, 0] * p0 + A[2, 1] * p1 + A[2, 2]
-        q0, q1 = uv2[i, 0], uv2[i, 1]
-        # q x (A p) and q x e, q = (q0, q1, 1)
-        c0, c1, c2 = q1 * a2 - a1, a0 - q0 * a2, q0 * a1 - q1 * a0
-        d0, d1, d2 = q1 * e[2] - e[1], e[0] - q0 * e[2], q0 * e[1] - q1 * e[0]
-        dd = d0 * d0 + d1 * d1 + d2 * d2
-        if dd > 1e-12:
-            out[i] = -(c0 * d0 + c1 * d1 + c2 * d2) / dd
-    return out
 
 
 @njit(cache=True)
@@ -721,7 +700,7 @@ def fill_planes(gray1: np.ndarray, size2: tuple[int, int], tv, uv1: np.ndarray, 
         fillable = len(idx) >= MIN_MATCHED_SHARE * areas[k]
         if (few and not drop and not fillable) or len(idx) < 4:
             continue
-        abc, on_plane = _plane_support(pose, uv1, uv2, idx, rng)
+        abc, on_plane = _plane_support(pose, uv1, uv2, X[:, 2], idx, rng)
         if abc is None:
             continue
         support = np.mean(on_plane)  # (judged on every match of the region, before any is dropped)
@@ -739,13 +718,12 @@ def fill_planes(gray1: np.ndarray, size2: tuple[int, int], tv, uv1: np.ndarray, 
         if aligned is not None:
             # one plane under the region's noise: its matches near it move onto it, the rest go
             abc = aligned
-            near = _plane_distance(pose, uv1[idx], uv2[idx], abc) <= RIM_SNAP_PX
-            if drop:
-                dropped.append(idx[~near])
-                gone = uv1[idx[~near]].astype(np.int64)
-                index[gone[:, 1], gone[:, 0]] = -1
-                idx = idx[near]
             on_plane = _plane_distance(pose, uv1[idx], uv2[idx], abc) <= RIM_SNAP_PX
+            if drop:
+                dropped.append(idx[~on_plane])
+                gone = uv1[idx[~on_plane]].astype(np.int64)
+                index[gone[:, 1], gone[:, 0]] = -1
+                idx, on_plane = idx[on_plane], on_plane[on_plane]
             if snap:
                 moved.append(idx[on_plane])
                 planes.append(np.broadcast_to(abc, (int(on_plane.sum()), 3)))
