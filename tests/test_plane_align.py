@@ -84,10 +84,10 @@ def test_the_halves_of_one_plane_agree_and_those_of_a_fold_or_of_noise_do_not():
         assert not halves_agree(images, A, E, px, align_plane(images, A, E, px, FLOOR))
 
 
-def _plain_floor_scene(seed=0):
+def _plain_floor_scene(seed=0, right_share=0.4):
     """Image 1: the faint floor framed by strong texture (its own plain region); image 2 as
-    the floor gives it; and matches on 30 % of the floor's pixels, 40 % of them on the floor
-    (0.3 px noise) and the rest 2-8 px off it, as SGM's on a weakly textured floor."""
+    the floor gives it; and matches on 30 % of the floor's pixels, ``right_share`` of them on
+    the floor (0.3 px noise) and the rest 2-8 px off it, as SGM's on a weakly textured floor."""
     one, two = _floor_pair()
     rng = np.random.default_rng(seed)
     frame = np.ones((H, W), bool)
@@ -95,7 +95,7 @@ def _plain_floor_scene(seed=0):
     one[frame] = rng.integers(0, 256, np.count_nonzero(frame))
     px = _pixels(step=1, margin=16)
     px = px[rng.random(len(px)) < 0.3]
-    right = rng.random(len(px)) < 0.4
+    right = rng.random(len(px)) < right_share
     err = np.where(right, rng.normal(scale=0.3, size=len(px)), rng.choice([-1, 1], len(px)) * rng.uniform(2, 8, len(px)))
     uv2 = px - np.column_stack([_parallax(FLOOR, px) + err, np.zeros(len(px))])
     X, ok, _ = triangulate(TV.K1, TV.K2, TV.R, TV.t, px, uv2)
@@ -120,6 +120,21 @@ def test_a_mostly_unmatched_floor_whose_plane_aligns_is_kept_moved_onto_it_and_f
     assert len(out.uv1) > 2 * len(uv1)  # the holes between them
     assert np.abs(out.uv1[:, 0] - out.uv2[:, 0] - _parallax(FLOOR, out.uv1)).max() < 0.15
     assert np.abs(out.uv1[:, 1] - out.uv2[:, 1]).max() < 1e-6  # on their epipolar lines
+
+
+def test_a_mostly_unmatched_floor_with_too_few_matches_on_its_plane_to_fill_is_aligned_and_filled():
+    """55 % of the matches on the floor: too many for the scattered check to drop them, too
+    few for the fill from the matches alone (60 %); without image 2 nothing is filled, with it
+    the plane aligns, the matches off it go and the floor is filled."""
+    one, two, uv1, uv2, X, err = _plain_floor_scene(right_share=0.55)
+    without = fill_planes(one, (W, H), TV, uv1, uv2, X)
+    assert len(without.uv1) == 0 and len(without.moved) == 0
+    out = fill_planes(one, (W, H), TV, uv1, uv2, X, gray2=two)
+    gone = np.zeros(len(uv1), bool)
+    gone[out.dropped] = True
+    assert not gone[err <= 2.9].any() and gone[err > 3.1].mean() > 0.95
+    assert len(out.uv1) > 2 * len(uv1)
+    assert np.abs(out.uv1[:, 0] - out.uv2[:, 0] - _parallax(FLOOR, out.uv1)).max() < 0.15
 
 
 def test_a_region_whose_matches_are_too_sparse_to_align_is_dropped_as_before():
