@@ -153,3 +153,30 @@ def test_a_region_whose_matches_are_too_sparse_to_align_is_dropped_as_before():
     assert len(without.dropped) > 0.9 * len(px)
     np.testing.assert_array_equal(out.dropped, without.dropped)
     assert len(out.uv1) == 0 and len(out.moved) == 0
+
+
+def test_an_aligned_floor_is_filled_beyond_its_matches_where_image_2_shows_it_and_not_where_it_is_hidden():
+    """Matches on the left half of the floor only; image 2 shows the floor's lower right
+    part behind another surface (strong texture of its own). The plane aligned on the left
+    half fills the upper right part, beyond the matches, on the floor; the hidden part,
+    whose window in image 2 under the plane shows the other surface, stays unfilled."""
+    one, two, uv1, uv2, X, _ = _plain_floor_scene()
+    left = uv1[:, 0] < W / 2
+    uv1, uv2, X = uv1[left], uv2[left], X[left]
+    occluder = np.random.default_rng(5).integers(0, 256, (H // 2, W // 4 + 16))
+    two[H // 2:, W - occluder.shape[1]:] = occluder
+    out = fill_planes(one, (W, H), TV, uv1, uv2, X, gray2=two)
+    filled = np.zeros((H, W), bool)
+    filled[out.uv1[:, 1].astype(int), out.uv1[:, 0].astype(int)] = True
+    upper_right = filled[24:H // 2 - 16, W // 2 + 16:W - 16]
+    assert upper_right.mean() > 0.95
+    # (the plane aligned on the left half, carried across the right: 0.16 px off at its far edge)
+    assert np.abs(out.uv1[:, 0] - out.uv2[:, 0] - _parallax(FLOOR, out.uv1)).max() < 0.25
+    # image 1's pixels whose partners on the floor lie 16 px or more inside the occluder
+    ys, xs = np.mgrid[H // 2 + 16:H - 16, 0:W - 16]
+    px = np.column_stack([xs.ravel() + 0.5, ys.ravel() + 0.5])
+    hidden = px[px[:, 0] - _parallax(FLOOR, px) >= W - occluder.shape[1] + 16]
+    assert len(hidden) > 1000
+    assert filled[hidden[:, 1].astype(int), hidden[:, 0].astype(int)].mean() < 0.05
+    # without image 2 nothing is aligned: the floor's scattered matches go, nothing is filled
+    assert len(fill_planes(one, (W, H), TV, uv1, uv2, X).uv1) == 0

@@ -8,9 +8,10 @@ the matches on it, each a plain window of the same surface, fit one plane of the
 regions at its intensity edges (:func:`plain_regions`); in each large region whose
 matches mostly agree on a plane (:func:`fill_planes`), the plane is aligned by the
 images' intensities where its halves agree on it (:mod:`.plane_align`), and the unmatched
-pixels among the plane's matches (:data:`MIN_HOLE_SUPPORT`) take the partner that plane
-gives, unless a nearer surface's match already lands there in image 2 (the pixel is
-hidden in view 2).
+pixels among the plane's matches (:data:`MIN_HOLE_SUPPORT`), and those of an aligned plane
+where image 2 under it matches image 1 (:data:`.plane_align.FILL_ZNCC`), take the partner
+that plane gives, unless a nearer surface's match already lands there in image 2 (the pixel
+is hidden in view 2).
 
 A region whose matches are few (:data:`MIN_MATCHED_SHARE`), or split over several
 depths (a wrong patch of the matcher, a curved or folded surface), is not filled from
@@ -50,7 +51,7 @@ import numpy as np
 from numba import njit
 
 from ..arrays import quiet_windows
-from .plane_align import MIN_HALF_PIXELS, align_images, align_plane, halves_agree
+from .plane_align import FILL_ZNCC, MIN_HALF_PIXELS, agreement, align_images, align_plane, halves_agree
 
 __all__ = ["PlaneFill", "fill_planes", "plain_regions"]
 
@@ -626,6 +627,22 @@ def _among_plane_matches(labels: np.ndarray, stats: np.ndarray, k: int, on1: np.
     return x0, y0, region > 0, among
 
 
+def _agreeing_beyond(gray1: np.ndarray, gray2: np.ndarray, pose: _Pose, abc: np.ndarray, x0: int, y0: int,
+                     region: np.ndarray, among: np.ndarray) -> np.ndarray:
+    """The pixels of ``region`` beyond its matches (not ``among`` them; (h, w) bool each over
+    the box at ``(x0, y0)`` of :func:`_among_plane_matches`) where image 2 warped by the
+    region's aligned plane ``abc`` matches image 1 (:func:`.plane_align.agreement` at least
+    :data:`.plane_align.FILL_ZNCC`), where it matches it so on the pixels it was aligned on
+    (their median): (h, w) bool. ``gray1``, ``gray2``: the (H, W) uint8 grey images."""
+    on, beyond = region & among, region & ~among
+    z_on, z_beyond = agreement(gray1, gray2, _homography(pose, abc), x0, y0, region, (on, beyond))
+    z_on = z_on[on]
+    z_on = z_on[~np.isnan(z_on)]
+    if len(z_on) == 0 or not np.median(z_on) >= FILL_ZNCC:  # (an alignment image 2 does not bear out)
+        return np.zeros_like(region)
+    return beyond & (z_beyond >= FILL_ZNCC)
+
+
 #: Pixels a region's plane is aligned on at most (a seeded random subset of those among its
 #: matches, :func:`_aligned_surface`): 3 parameters, and tens of thousands of pixels of a
 #: plain floor fix them to hundredths of a pixel; every pixel would cost the time of the
@@ -660,7 +677,8 @@ def fill_planes(gray1: np.ndarray, size2: tuple[int, int], tv, uv1: np.ndarray, 
                 gray2: np.ndarray | None = None,
                 repeats: tuple[np.ndarray, np.ndarray] | None = None, seed: int = 0) -> PlaneFill:
     """Partners for the unmatched pixels of image 1's large plain regions whose matches lie on
-    one plane (``fill``), for the matches without signal of the regions that are one plane
+    one plane (``fill``; among those matches, and beyond them where the plane is aligned by
+    the intensities and image 2 under it agrees, :func:`_agreeing_beyond`), for the matches without signal of the regions that are one plane
     all through (``snap``, :data:`SNAP_PX`), and the matches of the regions mostly unmatched
     whose matches lie on no one plane, and those off their plane on no second one, to drop
     (``drop``, :data:`MAX_SCATTERED_SUPPORT`, :data:`MIN_OFF_PLANE`);
@@ -755,15 +773,19 @@ def fill_planes(gray1: np.ndarray, size2: tuple[int, int], tv, uv1: np.ndarray, 
             continue
         # holes of the plane's matches, not a surface beyond them (MIN_HOLE_SUPPORT)
         x0, y0, region, among = _among_plane_matches(labels, stats, k, uv1[idx[on_plane]])
-        ys, xs = np.nonzero(region & (index[y0:y0 + region.shape[0], x0:x0 + region.shape[1]] < 0) & among)
+        unmatched = region & (index[y0:y0 + region.shape[0], x0:x0 + region.shape[1]] < 0)
+        ys, xs = np.nonzero(unmatched & among)
         if len(ys) == 0:
             continue
         if aligned is None and gray2 is not None and len(ys) >= MIN_FILL_SHARE * len(uv1):
             # the fill's plane aligned where its halves agree (not for a fill too small to keep)
-            refined = _aligned_surface(gray1, gray2, pose, labels, stats, k, uv1[idx[on_plane]], abc,
+            aligned = _aligned_surface(gray1, gray2, pose, labels, stats, k, uv1[idx[on_plane]], abc,
                                        np.random.default_rng(seed))  # (the other regions' draws stay)
-            if refined is not None:
-                abc = refined
+            if aligned is not None:
+                abc = aligned
+        if aligned is not None:  # an aligned plane also beyond its matches, where image 2 under it agrees
+            agree = _agreeing_beyond(gray1, gray2, pose, abc, x0, y0, region, among)
+            ys, xs = np.nonzero(unmatched & (among | agree))
         p1 = np.column_stack([xs + x0 + 0.5, ys + y0 + 0.5])
         p2 = _on_lines(tv.F, p1, cv2.perspectiveTransform(p1.reshape(-1, 1, 2), _homography(pose, abc)).reshape(-1, 2))
         inside = (p2[:, 0] >= 0) & (p2[:, 0] < size2[0]) & (p2[:, 1] >= 0) & (p2[:, 1] < size2[1])
