@@ -84,19 +84,21 @@ def test_the_halves_of_one_plane_agree_and_those_of_a_fold_or_of_noise_do_not():
         assert not halves_agree(images, A, E, px, align_plane(images, A, E, px, FLOOR))
 
 
-def _plain_floor_scene(seed=0, right_share=0.4):
+def _plain_floor_scene(seed=0, right_share=0.4, matched=0.3, sign=None):
     """Image 1: the faint floor framed by strong texture (its own plain region); image 2 as
-    the floor gives it; and matches on 30 % of the floor's pixels, ``right_share`` of them on
-    the floor (0.3 px noise) and the rest 2-8 px off it, as SGM's on a weakly textured floor."""
+    the floor gives it; and matches on ``matched`` of the floor's pixels, ``right_share`` of
+    them on the floor (0.3 px noise) and the rest 2-8 px off it (nearer or farther at random,
+    or by ``sign``: 1 nearer, -1 farther), as SGM's on a weakly textured floor."""
     one, two = _floor_pair()
     rng = np.random.default_rng(seed)
     frame = np.ones((H, W), bool)
     frame[12:H - 12, 12:W - 12] = False
     one[frame] = rng.integers(0, 256, np.count_nonzero(frame))
     px = _pixels(step=1, margin=16)
-    px = px[rng.random(len(px)) < 0.3]
+    px = px[rng.random(len(px)) < matched]
     right = rng.random(len(px)) < right_share
-    err = np.where(right, rng.normal(scale=0.3, size=len(px)), rng.choice([-1, 1], len(px)) * rng.uniform(2, 8, len(px)))
+    side = rng.choice([-1, 1], len(px)) if sign is None else sign
+    err = np.where(right, rng.normal(scale=0.3, size=len(px)), side * rng.uniform(2, 8, len(px)))
     uv2 = px - np.column_stack([_parallax(FLOOR, px) + err, np.zeros(len(px))])
     X, ok, _ = triangulate(TV.K1, TV.K2, TV.R, TV.t, px, uv2)
     return one, two, px[ok], uv2[ok], X[ok], np.abs(err[ok])
@@ -134,6 +136,22 @@ def test_a_mostly_unmatched_floor_with_too_few_matches_on_its_plane_to_fill_is_a
     gone[out.dropped] = True
     assert not gone[err <= 2.9].any() and gone[err > 3.1].mean() > 0.95
     assert len(out.uv1) > 2 * len(uv1)
+    assert np.abs(out.uv1[:, 0] - out.uv2[:, 0] - _parallax(FLOOR, out.uv1)).max() < 0.15
+
+
+def test_a_mostly_matched_floor_with_too_few_matches_on_one_plane_is_filled_where_its_plane_aligns():
+    """70 % of the floor matched, 55 % of those on it: too few on one plane for the fill from
+    the matches alone, and too many matched for the scattered check. With image 2 the plane
+    aligns and the unmatched pixels take it; SGM's matches stay as they are. (The matches off
+    the floor lie farther, so that they hide none of it in view 2.)"""
+    one, two, uv1, uv2, X, _ = _plain_floor_scene(right_share=0.55, matched=0.7, sign=-1)
+    without = fill_planes(one, (W, H), TV, uv1, uv2, X)
+    assert len(without.uv1) == 0 and len(without.moved) == 0 and len(without.dropped) == 0
+    out = fill_planes(one, (W, H), TV, uv1, uv2, X, gray2=two)
+    assert len(out.moved) == 0 and len(out.dropped) == 0
+    # 3 / 7 of the floor is unmatched; a part of it stays hidden in view 2 behind the matches
+    # on the floor, whose 0.3 px of noise is 2-4 % of the depth (HIDDEN_DEPTH_SHARE: 1 %)
+    assert len(out.uv1) > 0.1 * len(uv1)
     assert np.abs(out.uv1[:, 0] - out.uv2[:, 0] - _parallax(FLOOR, out.uv1)).max() < 0.15
 
 
