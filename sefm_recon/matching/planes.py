@@ -681,8 +681,9 @@ def fill_planes(gray1: np.ndarray, size2: tuple[int, int], tv, uv1: np.ndarray, 
                 gray2: np.ndarray | None = None,
                 repeats: tuple[np.ndarray, np.ndarray] | None = None, seed: int = 0) -> PlaneFill:
     """Partners for the unmatched pixels of image 1's large plain regions whose matches lie on
-    one plane (``fill``; among those matches, and beyond them where the plane is aligned by
-    the intensities and image 2 under it agrees, :func:`_agreeing_beyond`), for the matches without signal of the regions that are one plane
+    one plane, or whose plane the intensities align (``fill``: among those matches, and for an
+    aligned plane beyond them where image 2 under it agrees, :func:`_agreeing_beyond`), for
+    the matches without signal of the regions that are one plane
     all through (``snap``, :data:`SNAP_PX`), and the matches of the regions mostly unmatched
     whose matches lie on no one plane, and those off their plane on no second one, to drop
     (``drop``, :data:`MAX_SCATTERED_SUPPORT`, :data:`MIN_OFF_PLANE`);
