@@ -654,14 +654,13 @@ def _agreeing_beyond(gray1: np.ndarray, gray2: np.ndarray, pose: _Pose, abc: np.
 MAX_ALIGN_PIXELS = 40000
 
 
-def _aligned_surface(gray1: np.ndarray, gray2: np.ndarray, pose: _Pose, labels: np.ndarray, stats: np.ndarray, k: int,
-                     on1: np.ndarray, abc: np.ndarray, rng: np.random.Generator) -> np.ndarray | None:
-    """The plane ``abc`` of region ``k`` of ``labels`` aligned by the images' intensities
-    (:func:`.plane_align.align_plane`) on the region's pixels among its matches on that plane
-    (``on1``: (N, 2) in image 1; :data:`MIN_HOLE_SUPPORT` of a :data:`HOLE_WINDOW` window),
-    where its halves agree on it (:func:`.plane_align.halves_agree`); else None. ``gray1``,
-    ``gray2``: the (H, W) uint8 grey images."""
-    x0, y0, region, among = _among_plane_matches(labels, stats, k, on1)
+def _aligned_surface(gray1: np.ndarray, gray2: np.ndarray, pose: _Pose, x0: int, y0: int, region: np.ndarray,
+                     among: np.ndarray, abc: np.ndarray, rng: np.random.Generator) -> np.ndarray | None:
+    """A region's plane ``abc`` aligned by the images' intensities (:func:`.plane_align.align_plane`)
+    on its pixels among its matches on that plane (``x0``, ``y0``, ``region``, ``among``: the
+    box of :func:`_among_plane_matches`), where its halves agree on it
+    (:func:`.plane_align.halves_agree`); else None. ``gray1``, ``gray2``: the (H, W) uint8 grey
+    images."""
     ys, xs = np.nonzero(region & among)
     if len(ys) < 2 * MIN_HALF_PIXELS:  # (matches too sparse for any pixel: no halves to compare)
         return None
@@ -734,16 +733,19 @@ def fill_planes(gray1: np.ndarray, size2: tuple[int, int], tv, uv1: np.ndarray, 
             dropped.append(idx)
             continue
         aligned = None
-        if few and support < MIN_PLANE_SUPPORT and gray2 is not None:
-            aligned = _aligned_surface(gray1, gray2, pose, labels, stats, k, uv1[idx[on_plane]], abc,
-                                       np.random.default_rng(seed))  # (the other regions' draws stay)
+        if support < MIN_PLANE_SUPPORT and gray2 is not None and (few or fill):
+            # too little on one plane for the fill from the matches: the intensities may fix it
+            # (a mostly matched region's only for the fill: its matches, SGM's on a surface it found, stay)
+            aligned = _aligned_surface(gray1, gray2, pose, *_among_plane_matches(labels, stats, k, uv1[idx[on_plane]]),
+                                       abc, np.random.default_rng(seed))  # (the other regions' draws stay)
+            if aligned is not None:
+                abc = aligned
         if few and support < MAX_SCATTERED_SUPPORT and aligned is None:  # no surface the matcher found
             if drop:
                 dropped.append(idx)
             continue
-        if aligned is not None:
+        if few and aligned is not None:
             # one plane under the region's noise: its matches near it move onto it, the rest go
-            abc = aligned
             on_plane = _plane_distance(pose, uv1[idx], uv2[idx], abc) <= RIM_SNAP_PX
             if drop:
                 dropped.append(idx[~on_plane])
@@ -766,15 +768,7 @@ def fill_planes(gray1: np.ndarray, size2: tuple[int, int], tv, uv1: np.ndarray, 
         if aligned is None and not fillable:  # nothing to fill or snap: the matches stay
             continue
         if aligned is None and (support < MIN_PLANE_SUPPORT or not (fill or snap)):
-            if few or not fill or gray2 is None or support >= MIN_PLANE_SUPPORT:
-                continue
-            # mostly matched, too little on one plane for the fill from its matches: filled where
-            # the intensities fix the plane (its matches, SGM's on a surface it found, stay)
-            aligned = _aligned_surface(gray1, gray2, pose, labels, stats, k, uv1[idx[on_plane]], abc,
-                                       np.random.default_rng(seed))  # (the other regions' draws stay)
-            if aligned is None:
-                continue
-            abc = aligned
+            continue
         if snap and aligned is None:
             own1 = uv1[idx]  # the region's matches in image 1
             plane, near = _snap_plane(pose, own1, uv2[idx], X[idx, 2], on_plane)
@@ -792,7 +786,7 @@ def fill_planes(gray1: np.ndarray, size2: tuple[int, int], tv, uv1: np.ndarray, 
             continue
         if aligned is None and gray2 is not None and len(ys) >= MIN_FILL_SHARE * len(uv1):
             # the fill's plane aligned where its halves agree (not for a fill too small to keep)
-            aligned = _aligned_surface(gray1, gray2, pose, labels, stats, k, uv1[idx[on_plane]], abc,
+            aligned = _aligned_surface(gray1, gray2, pose, x0, y0, region, among, abc,
                                        np.random.default_rng(seed))  # (the other regions' draws stay)
             if aligned is not None:
                 abc = aligned
