@@ -142,8 +142,9 @@ def test_a_mostly_unmatched_floor_with_too_few_matches_on_its_plane_to_fill_is_a
 def test_a_mostly_matched_floor_with_too_few_matches_on_one_plane_is_filled_where_its_plane_aligns():
     """70 % of the floor matched, 55 % of those on it: too few on one plane for the fill from
     the matches alone, and too many matched for the scattered check. With image 2 the plane
-    aligns and the unmatched pixels take it; SGM's matches stay as they are. (The matches off
-    the floor lie farther, so that they hide none of it in view 2.)"""
+    aligns and the unmatched pixels take it; SGM's matches stay as they are (too few lie on
+    the aligned plane to call the others noise). (The matches off the floor lie farther, so
+    that they hide none of it in view 2.)"""
     one, two, uv1, uv2, X, _ = _plain_floor_scene(right_share=0.55, matched=0.7, sign=-1)
     without = fill_planes(one, (W, H), TV, uv1, uv2, X)
     assert len(without.uv1) == 0 and len(without.moved) == 0 and len(without.dropped) == 0
@@ -153,6 +154,44 @@ def test_a_mostly_matched_floor_with_too_few_matches_on_one_plane_is_filled_wher
     # on the floor, whose 0.3 px of noise is 2-4 % of the depth (HIDDEN_DEPTH_SHARE: 1 %)
     assert len(out.uv1) > 0.1 * len(uv1)
     assert np.abs(out.uv1[:, 0] - out.uv2[:, 0] - _parallax(FLOOR, out.uv1)).max() < 0.15
+
+
+def test_scattered_matches_1_to_3_px_off_an_aligned_floor_move_onto_it_and_a_patch_off_it_stays():
+    """75 % of a mostly matched floor's matches on it, the rest scattered 1-3 px off (SGM's
+    noise on a weakly textured floor), and one band of rows whose matches all lie 1.5 px off
+    (as a surface leaving the plane would). The plane aligns: the scattered matches move onto
+    it, the band's stay as they are (most matches about them are off the plane), and so do
+    those 3 px or more off."""
+    one, two, uv1, uv2, X, err = _plain_floor_scene(right_share=0.75, matched=0.7, sign=-1)
+    rng = np.random.default_rng(3)
+    scattered = (err > 0.9) & (rng.random(len(err)) < 0.5)  # half of the matches off the floor: 1-3 px off
+    err[scattered] = rng.uniform(1.2, 2.8, scattered.sum())
+    band = (uv1[:, 1] > 150) & (uv1[:, 1] < 190)
+    err[band] = 1.5
+    uv2 = uv1 - np.column_stack([_parallax(FLOOR, uv1) - err, np.zeros(len(uv1))])  # (farther)
+    X, ok, _ = triangulate(TV.K1, TV.K2, TV.R, TV.t, uv1, uv2)
+    assert ok.all()
+    out = fill_planes(one, (W, H), TV, uv1, uv2, X, gray2=two)
+    moved = np.zeros(len(uv1), bool)
+    moved[out.moved] = True
+    away = (uv1[:, 1] < 150 - 16) | (uv1[:, 1] > 190 + 16)  # (windows about them reach no band)
+    assert moved[scattered & away].mean() > 0.95
+    assert not moved[band].any() and not moved[err > 3.1].any() and not moved[err < 0.9].any()
+    assert np.abs(uv1[out.moved, 0] - out.moved_uv2[:, 0] - _parallax(FLOOR, uv1[out.moved])).max() < 0.15
+
+
+def test_a_plane_image_2_shows_nothing_of_is_not_aligned_though_its_halves_agree():
+    """Image 2 of one value where the floor would be (a surface hidden in view 2, or beyond
+    its edge): the alignment has no gradient to follow, so both halves stay on RANSAC's
+    plane and agree. Image 2 under the plane does not match image 1, so it is no aligned
+    plane: nothing is filled or moved onto it, as where image 2 shows another texture."""
+    one, two, uv1, uv2, X, _ = _plain_floor_scene(right_share=0.55)
+    two[:] = 140
+    other = np.clip(np.rint(_texture(11, 3.0)), 0, 255).astype(np.uint8)
+    for image2 in (two, other):
+        out = fill_planes(one, (W, H), TV, uv1, uv2, X, gray2=image2)
+        assert len(out.uv1) == 0 and len(out.moved) == 0
+        assert 0.3 * len(uv1) < len(out.dropped) < 0.6 * len(uv1)  # the matches off the plane
 
 
 def test_a_region_whose_matches_are_too_sparse_to_align_is_dropped_as_before():

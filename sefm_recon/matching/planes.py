@@ -7,7 +7,8 @@ the matches on it, each a plain window of the same surface, fit one plane of the
 (:func:`_plane_support`: 3 parameters with the pose given). Image 1 is cut into plain
 regions at its intensity edges (:func:`plain_regions`); in each large region whose
 matches mostly agree on a plane (:func:`fill_planes`), the plane is aligned by the
-images' intensities where its halves agree on it (:mod:`.plane_align`), and the unmatched
+images' intensities where its halves agree on it and image 2 under it bears it out
+(:mod:`.plane_align`, :data:`.plane_align.ALIGNED_ZNCC`), and the unmatched
 pixels among the plane's matches (:data:`MIN_HOLE_SUPPORT`), and those of an aligned plane
 where image 2 under it matches image 1 (:data:`.plane_align.FILL_ZNCC`), take the partner
 that plane gives, unless a nearer surface's match already lands there in image 2 (the pixel
@@ -34,7 +35,9 @@ Where a region is one plane all through (nearly all its matches within
 its winner is set by the smoothness penalties alone, so that a slanted plain
 surface comes out as a wave of fronto-parallel steps around the plane (Plastic's
 box face: 1-1.7 px off over runs of 20-40 px, more than the local plane fit of
-:func:`.surfaces.fit_plain_surfaces` spans).
+:func:`.surfaces.fit_plain_surfaces` spans). Where a mostly matched region's plane is
+aligned, its matches 1-3 px off it, amid matches on it, move onto it too where image 2
+under it agrees (:func:`_noise_about`: SGM's blotches on a weakly textured floor).
 
 Small plain regions (:func:`_rim_planes`) hold too few matches of their own for a
 plane, but their rim, the intensity edge around them, is texture SGM matches well:
@@ -46,6 +49,7 @@ squares of a slanted floor: 1-3 px off, and left unmatched in part).
 
 from __future__ import annotations
 
+import functools
 from typing import NamedTuple
 
 import cv2
@@ -53,7 +57,8 @@ import numpy as np
 from numba import njit
 
 from ..arrays import quiet_windows
-from .plane_align import FILL_ZNCC, MIN_HALF_PIXELS, agreement, align_images, align_plane, halves_agree
+from .plane_align import (AGREE_PX, ALIGNED_ZNCC, FILL_ZNCC, MIN_HALF_PIXELS, NORM_RADIUS, SIGMAS, agreement,
+                          align_images, align_plane, halves_agree, normalised)
 
 __all__ = ["PlaneFill", "fill_planes", "plain_regions"]
 
@@ -631,20 +636,55 @@ def _among_plane_matches(labels: np.ndarray, stats: np.ndarray, k: int, on1: np.
     return x0, y0, region > 0, among
 
 
-def _agreeing_beyond(gray1: np.ndarray, gray2: np.ndarray, pose: _Pose, abc: np.ndarray, x0: int, y0: int,
-                     region: np.ndarray, among: np.ndarray) -> np.ndarray:
-    """The pixels of ``region`` beyond its matches (not ``among`` them; (h, w) bool each over
-    the box at ``(x0, y0)`` of :func:`_among_plane_matches`) where image 2 warped by the
-    region's aligned plane ``abc`` matches image 1 (:func:`.plane_align.agreement` at least
-    :data:`.plane_align.FILL_ZNCC`), where it matches it so on the pixels it was aligned on
-    (their median): (h, w) bool. ``gray1``, ``gray2``: the (H, W) uint8 grey images."""
+def _agreeing(gray1: np.ndarray, norm2: np.ndarray, pose: _Pose, abc: np.ndarray, x0: int, y0: int,
+              region: np.ndarray, among: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Where image 2 warped by a region's aligned plane ``abc`` matches image 1
+    (:func:`.plane_align.agreement`; the box at ``(x0, y0)`` of :func:`_among_plane_matches`,
+    ``region`` and ``among`` (h, w) bool over it): the pixels of the region beyond its matches
+    (not ``among`` them) where it does at least :data:`.plane_align.FILL_ZNCC` over those
+    pixels, provided it does so on the pixels among them (their median), and the correlation
+    about each pixel over all the region's ((h, w) bool and float32). ``gray1``: the (H, W)
+    uint8 image 1; ``norm2``: image 2 normalised (:func:`.plane_align.normalised`)."""
     on, beyond = region & among, region & ~among
-    z_on, z_beyond = agreement(gray1, gray2, _homography(pose, abc), x0, y0, region, (on, beyond))
+    z_on, z_beyond, z_region = agreement(gray1, norm2, _homography(pose, abc), x0, y0, region, (on, beyond, region))
     z_on = z_on[on]
     z_on = z_on[~np.isnan(z_on)]
-    if len(z_on) == 0 or not np.median(z_on) >= FILL_ZNCC:  # (an alignment image 2 does not bear out)
-        return np.zeros_like(region)
-    return beyond & (z_beyond >= FILL_ZNCC)
+    if len(z_on) == 0 or not np.median(z_on) >= FILL_ZNCC:  # (an alignment image 2 bears out less)
+        return np.zeros_like(region), z_region
+    return beyond & (z_beyond >= FILL_ZNCC), z_region
+
+
+#: A match off an aligned plane is noise about it where at least this share of the region's
+#: matches in the window about it (the correlation's, :data:`.plane_align.NORM_RADIUS`) lie
+#: on the plane (within :data:`.plane_align.AGREE_PX`): most of its neighbourhood is the
+#: plane. Where a curved surface leaves the plane, most of its matches there lie off it
+#: (Lampshade2 rect's shade, own pose: 12,000 right matches 1-2 px off its aligned plane,
+#: where image 2 under the plane still correlates at 0.8 or more over its faint texture).
+NOISE_NEIGHBOURS_ON = 0.5
+
+
+def _noise_about(pose: _Pose, uv1: np.ndarray, uv2: np.ndarray, abc: np.ndarray, x0: int, y0: int,
+                 shape: tuple[int, int], z: np.ndarray) -> np.ndarray:
+    """Which of a mostly matched region's matches ``uv1``, ``uv2`` (N, 2, pixels of image 1
+    within the box at ``(x0, y0)`` of ``shape``) are SGM's noise about its aligned plane
+    ``abc``: off it by :data:`.plane_align.AGREE_PX` to :data:`RIM_SNAP_PX`, where image 2
+    under it matches image 1 about them (``z``, the box's correlations from :func:`_agreeing`,
+    at least :data:`.plane_align.FILL_ZNCC`) and most matches about them lie on it
+    (:data:`NOISE_NEIGHBOURS_ON`), in a region whose matches mostly lie on it
+    (:data:`MIN_PLANE_SUPPORT`): (N,) bool. On a weakly textured floor SGM leaves blotches
+    1-3 px off (generated seed 13's: 19,000 matches, 1 % of them within 1 px of the truth)."""
+    d = _plane_distance(pose, uv1, uv2, abc)
+    on = d <= AGREE_PX
+    if np.mean(on) < MIN_PLANE_SUPPORT:  # (no one plane the region's matches lie on)
+        return np.zeros(len(uv1), bool)
+    iy, ix = uv1[:, 1].astype(np.int64) - y0, uv1[:, 0].astype(np.int64) - x0
+    matched, on_img = np.zeros(shape, np.float32), np.zeros(shape, np.float32)
+    matched[iy, ix] = 1.0
+    on_img[iy, ix] = on
+    win = (2 * NORM_RADIUS + 1, 2 * NORM_RADIUS + 1)
+    share = (cv2.boxFilter(on_img, -1, win, normalize=False)
+             / np.maximum(cv2.boxFilter(matched, -1, win, normalize=False), 1.0))
+    return ~on & (d <= RIM_SNAP_PX) & (z[iy, ix] >= FILL_ZNCC) & (share[iy, ix] >= NOISE_NEIGHBOURS_ON)
 
 
 #: Pixels a region's plane is aligned on at most (a seeded random subset of those among its
@@ -654,13 +694,16 @@ def _agreeing_beyond(gray1: np.ndarray, gray2: np.ndarray, pose: _Pose, abc: np.
 MAX_ALIGN_PIXELS = 40000
 
 
-def _aligned_surface(gray1: np.ndarray, gray2: np.ndarray, pose: _Pose, x0: int, y0: int, region: np.ndarray,
-                     among: np.ndarray, abc: np.ndarray, rng: np.random.Generator) -> np.ndarray | None:
+def _aligned_surface(gray1: np.ndarray, gray2: np.ndarray, norm2: np.ndarray, pose: _Pose, x0: int, y0: int,
+                     region: np.ndarray, among: np.ndarray, abc: np.ndarray,
+                     rng: np.random.Generator) -> np.ndarray | None:
     """A region's plane ``abc`` aligned by the images' intensities (:func:`.plane_align.align_plane`)
     on its pixels among its matches on that plane (``x0``, ``y0``, ``region``, ``among``: the
     box of :func:`_among_plane_matches`), where its halves agree on it
-    (:func:`.plane_align.halves_agree`); else None. ``gray1``, ``gray2``: the (H, W) uint8 grey
-    images."""
+    (:func:`.plane_align.halves_agree`) and image 2 warped by it matches image 1 on those
+    pixels (the median of :func:`.plane_align.agreement` at least
+    :data:`.plane_align.ALIGNED_ZNCC`); else None. ``gray1``, ``gray2``: the (H, W) uint8 grey
+    images; ``norm2``: image 2 normalised (:func:`.plane_align.normalised`)."""
     ys, xs = np.nonzero(region & among)
     if len(ys) < 2 * MIN_HALF_PIXELS:  # (matches too sparse for any pixel: no halves to compare)
         return None
@@ -672,7 +715,12 @@ def _aligned_surface(gray1: np.ndarray, gray2: np.ndarray, pose: _Pose, x0: int,
     q = np.column_stack([px, np.ones(len(px))]) @ _homography(pose, abc).T
     images = align_images(gray1, gray2, px, q[:, :2] / q[:, 2:3])
     aligned = align_plane(images, A, e, px, abc)
-    return aligned if halves_agree(images, A, e, px, aligned) else None
+    if not halves_agree(images, A, e, px, aligned):
+        return None
+    z_on, = agreement(gray1, norm2, _homography(pose, aligned), x0, y0, region, (region & among,))
+    z_on = z_on[region & among]
+    z_on = z_on[~np.isnan(z_on)]
+    return aligned if len(z_on) and np.median(z_on) >= ALIGNED_ZNCC else None
 
 
 def fill_planes(gray1: np.ndarray, size2: tuple[int, int], tv, uv1: np.ndarray, uv2: np.ndarray, X: np.ndarray,
@@ -681,9 +729,11 @@ def fill_planes(gray1: np.ndarray, size2: tuple[int, int], tv, uv1: np.ndarray, 
                 repeats: tuple[np.ndarray, np.ndarray] | None = None, seed: int = 0) -> PlaneFill:
     """Partners for the unmatched pixels of image 1's large plain regions whose matches lie on
     one plane, or whose plane the intensities align (``fill``: among those matches, and for an
-    aligned plane beyond them where image 2 under it agrees, :func:`_agreeing_beyond`), for
+    aligned plane beyond them where image 2 under it agrees, :func:`_agreeing`), for
     the matches without signal of the regions that are one plane
-    all through (``snap``, :data:`SNAP_PX`), and the matches of the regions mostly unmatched
+    all through (``snap``, :data:`SNAP_PX`) and those 1-3 px off an aligned plane where image
+    2 under it agrees (:data:`.plane_align.AGREE_PX`, :data:`RIM_SNAP_PX`), and the matches of
+    the regions mostly unmatched
     whose matches lie on no one plane, and those off their plane on no second one, to drop
     (``drop``, :data:`MAX_SCATTERED_SUPPORT`, :data:`MIN_OFF_PLANE`);
     with ``rims``, the same fill and move for the small regions from their rim's plane
@@ -718,6 +768,7 @@ def fill_planes(gray1: np.ndarray, size2: tuple[int, int], tv, uv1: np.ndarray, 
     pose = _pose(tv)
     quiet = quiet_windows(gray1, SNAP_WINDOW, SNAP_LEVELS) if snap else None
     rng = np.random.default_rng(seed)
+    norm2 = functools.cache(lambda: normalised(gray2, SIGMAS[-1]))  # (for the aligned planes alone)
     add1, add2, moved, planes, dropped = [], [], [], [], []
     for k in big:
         idx = np.flatnonzero(lab == k)
@@ -736,7 +787,8 @@ def fill_planes(gray1: np.ndarray, size2: tuple[int, int], tv, uv1: np.ndarray, 
         if support < MIN_PLANE_SUPPORT and gray2 is not None and (few or fill):
             # too little on one plane for the fill from the matches: the intensities may fix it
             # (a mostly matched region's only for the fill: its matches, SGM's on a surface it found, stay)
-            aligned = _aligned_surface(gray1, gray2, pose, *_among_plane_matches(labels, stats, k, uv1[idx[on_plane]]),
+            aligned = _aligned_surface(gray1, gray2, norm2(), pose,
+                                       *_among_plane_matches(labels, stats, k, uv1[idx[on_plane]]),
                                        abc, np.random.default_rng(seed))  # (the other regions' draws stay)
             if aligned is not None:
                 abc = aligned
@@ -782,17 +834,21 @@ def fill_planes(gray1: np.ndarray, size2: tuple[int, int], tv, uv1: np.ndarray, 
         x0, y0, region, among = _among_plane_matches(labels, stats, k, uv1[idx[on_plane]])
         unmatched = region & (index[y0:y0 + region.shape[0], x0:x0 + region.shape[1]] < 0)
         ys, xs = np.nonzero(unmatched & among)
-        if len(ys) == 0:
-            continue
         if aligned is None and gray2 is not None and len(ys) >= MIN_FILL_SHARE * len(uv1):
             # the fill's plane aligned where its halves agree (not for a fill too small to keep)
-            aligned = _aligned_surface(gray1, gray2, pose, x0, y0, region, among, abc,
+            aligned = _aligned_surface(gray1, gray2, norm2(), pose, x0, y0, region, among, abc,
                                        np.random.default_rng(seed))  # (the other regions' draws stay)
             if aligned is not None:
                 abc = aligned
         if aligned is not None:  # an aligned plane also beyond its matches, where image 2 under it agrees
-            agree = _agreeing_beyond(gray1, gray2, pose, abc, x0, y0, region, among)
+            agree, z = _agreeing(gray1, norm2(), pose, abc, x0, y0, region, among)
             ys, xs = np.nonzero(unmatched & (among | agree))
+            if snap and not few:  # (a mostly unmatched region's matches near it moved above)
+                near = _noise_about(pose, uv1[idx], uv2[idx], abc, x0, y0, region.shape, z)
+                moved.append(idx[near])
+                planes.append(np.broadcast_to(abc, (int(near.sum()), 3)))
+        if len(ys) == 0:
+            continue
         p1 = np.column_stack([xs + x0 + 0.5, ys + y0 + 0.5])
         p2 = _on_lines(tv.F, p1, cv2.perspectiveTransform(p1.reshape(-1, 1, 2), _homography(pose, abc)).reshape(-1, 2))
         inside = (p2[:, 0] >= 0) & (p2[:, 0] < size2[0]) & (p2[:, 1] >= 0) & (p2[:, 1] < size2[1])
