@@ -180,6 +180,27 @@ def test_scattered_matches_1_to_3_px_off_an_aligned_floor_move_onto_it_and_a_pat
     assert np.abs(uv1[out.moved, 0] - out.moved_uv2[:, 0] - _parallax(FLOOR, uv1[out.moved])).max() < 0.15
 
 
+def test_noise_both_ways_about_an_aligned_floor_moves_onto_it_where_it_is_the_local_majority():
+    """A band of rows where two thirds of the floor's matches lie 1-3 px off it, half of them
+    nearer and half farther (SGM's noise outnumbering the right matches there): they move
+    onto the aligned plane, as a band all on one side would not (a surface leaving it)."""
+    one, two, uv1, uv2, X, err = _plain_floor_scene(right_share=0.8, matched=0.7, sign=-1)
+    rng = np.random.default_rng(4)
+    band = (uv1[:, 1] > 128) & (uv1[:, 1] < 184)
+    noisy = band & (rng.random(len(uv1)) < 2 / 3)
+    off = np.where(noisy, rng.choice([-1.0, 1.0], len(uv1)) * rng.uniform(1.2, 2.8, len(uv1)), 0.0)
+    err = np.where(noisy, np.abs(off), err)
+    uv2 = np.where(noisy[:, None], uv1 - np.column_stack([_parallax(FLOOR, uv1) + off, np.zeros(len(uv1))]), uv2)
+    X, ok, _ = triangulate(TV.K1, TV.K2, TV.R, TV.t, uv1, uv2)
+    assert ok.all()
+    out = fill_planes(one, (W, H), TV, uv1, uv2, X, gray2=two)
+    moved = np.zeros(len(uv1), bool)
+    moved[out.moved] = True
+    inner = noisy & (uv1[:, 1] > 128 + 16) & (uv1[:, 1] < 184 - 16) & (uv1[:, 0] > 32) & (uv1[:, 0] < W - 32)
+    assert inner.sum() > 1000 and moved[inner].mean() > 0.95
+    assert np.abs(uv1[out.moved, 0] - out.moved_uv2[:, 0] - _parallax(FLOOR, uv1[out.moved])).max() < 0.15
+
+
 def test_a_plane_image_2_shows_nothing_of_is_not_aligned_though_its_halves_agree():
     """Image 2 of one value where the floor would be (a surface hidden in view 2, or beyond
     its edge): the alignment has no gradient to follow, so both halves stay on RANSAC's

@@ -656,20 +656,22 @@ def _agreeing(gray1: np.ndarray, norm2: np.ndarray, pose: _Pose, abc: np.ndarray
 
 #: A match off an aligned plane is noise about it where at least this share of the region's
 #: matches in the window about it (the correlation's, :data:`.plane_align.NORM_RADIUS`) lie
-#: on the plane (within :data:`.plane_align.AGREE_PX`): most of its neighbourhood is the
-#: plane. Where a curved surface leaves the plane, most of its matches there lie off it
-#: (Lampshade2 rect's shade, own pose: 12,000 right matches 1-2 px off its aligned plane,
-#: where image 2 under the plane still correlates at 0.8 or more over its faint texture).
+#: on the plane (within :data:`.plane_align.AGREE_PX`) or off it on the other side: SGM's
+#: noise scatters both ways about the plane, while a curved surface leaving it goes one way,
+#: most of its matches there off it on that side (Lampshade2 rect's shade, own pose: 12,000
+#: right matches 1-2 px off its aligned plane, where image 2 under the plane still
+#: correlates at 0.8 or more over its faint texture).
 NOISE_NEIGHBOURS_ON = 0.5
 
 
-def _noise_about(pose: _Pose, uv1: np.ndarray, uv2: np.ndarray, abc: np.ndarray, x0: int, y0: int,
-                 shape: tuple[int, int], z: np.ndarray) -> np.ndarray:
+def _noise_about(pose: _Pose, uv1: np.ndarray, uv2: np.ndarray, z_depth: np.ndarray, abc: np.ndarray, x0: int,
+                 y0: int, shape: tuple[int, int], z: np.ndarray) -> np.ndarray:
     """Which of a mostly matched region's matches ``uv1``, ``uv2`` (N, 2, pixels of image 1
-    within the box at ``(x0, y0)`` of ``shape``) are SGM's noise about its aligned plane
-    ``abc``: off it by :data:`.plane_align.AGREE_PX` to :data:`RIM_SNAP_PX`, where image 2
-    under it matches image 1 about them (``z``, the box's correlations from :func:`_agreeing`,
-    at least :data:`.plane_align.FILL_ZNCC`) and most matches about them lie on it
+    within the box at ``(x0, y0)`` of ``shape``; ``z_depth`` (N,) their depths) are SGM's
+    noise about its aligned plane ``abc``: off it by :data:`.plane_align.AGREE_PX` to
+    :data:`RIM_SNAP_PX`, where image 2 under it matches image 1 about them (``z``, the box's
+    correlations from :func:`_agreeing`, at least :data:`.plane_align.FILL_ZNCC`) and most
+    matches about them lie on it or off it on the other side
     (:data:`NOISE_NEIGHBOURS_ON`), in a region whose matches mostly lie on it
     (:data:`MIN_PLANE_SUPPORT`): (N,) bool. On a weakly textured floor SGM leaves blotches
     1-3 px off (generated seed 13's: 19,000 matches, 1 % of them within 1 px of the truth)."""
@@ -677,14 +679,21 @@ def _noise_about(pose: _Pose, uv1: np.ndarray, uv2: np.ndarray, abc: np.ndarray,
     on = d <= AGREE_PX
     if np.mean(on) < MIN_PLANE_SUPPORT:  # (no one plane the region's matches lie on)
         return np.zeros(len(uv1), bool)
+    # nearer than the plane (inverse depth above it) or farther
+    nearer = 1.0 / z_depth - (uv1 @ abc[:2] + abc[2]) > 0
     iy, ix = uv1[:, 1].astype(np.int64) - y0, uv1[:, 0].astype(np.int64) - x0
-    matched, on_img = np.zeros(shape, np.float32), np.zeros(shape, np.float32)
-    matched[iy, ix] = 1.0
-    on_img[iy, ix] = on
     win = (2 * NORM_RADIUS + 1, 2 * NORM_RADIUS + 1)
-    share = (cv2.boxFilter(on_img, -1, win, normalize=False)
-             / np.maximum(cv2.boxFilter(matched, -1, win, normalize=False), 1.0))
-    return ~on & (d <= RIM_SNAP_PX) & (z[iy, ix] >= FILL_ZNCC) & (share[iy, ix] >= NOISE_NEIGHBOURS_ON)
+
+    def count(which):
+        img = np.zeros(shape, np.float32)
+        img[iy, ix] = which
+        return cv2.boxFilter(img, -1, win, normalize=False)[iy, ix]
+
+    n_on, n_near, n_far = count(on), count(~on & nearer), count(~on & ~nearer)
+    # the matches on the plane and those off it on the other side: SGM's noise scatters both ways
+    n_opposite = np.where(nearer, n_far, n_near)
+    share = (n_on + n_opposite) / np.maximum(count(np.ones(len(uv1), bool)), 1.0)
+    return ~on & (d <= RIM_SNAP_PX) & (z[iy, ix] >= FILL_ZNCC) & (share >= NOISE_NEIGHBOURS_ON)
 
 
 #: Pixels a region's plane is aligned on at most (a seeded random subset of those among its
@@ -844,7 +853,7 @@ def fill_planes(gray1: np.ndarray, size2: tuple[int, int], tv, uv1: np.ndarray, 
             agree, z = _agreeing(gray1, norm2(), pose, abc, x0, y0, region, among)
             ys, xs = np.nonzero(unmatched & (among | agree))
             if snap and not few:  # (a mostly unmatched region's matches near it moved above)
-                near = _noise_about(pose, uv1[idx], uv2[idx], abc, x0, y0, region.shape, z)
+                near = _noise_about(pose, uv1[idx], uv2[idx], X[idx, 2], abc, x0, y0, region.shape, z)
                 moved.append(idx[near])
                 planes.append(np.broadcast_to(abc, (int(near.sum()), 3)))
         if len(ys) == 0:
