@@ -647,11 +647,18 @@ def _agreeing(gray1: np.ndarray, norm2: np.ndarray, pose: _Pose, abc: np.ndarray
     uint8 image 1; ``norm2``: image 2 normalised (:func:`.plane_align.normalised`)."""
     on, beyond = region & among, region & ~among
     z_on, z_beyond, z_region = agreement(gray1, norm2, _homography(pose, abc), x0, y0, region, (on, beyond, region))
-    z_on = z_on[on]
-    z_on = z_on[~np.isnan(z_on)]
-    if len(z_on) == 0 or not np.median(z_on) >= FILL_ZNCC:  # (an alignment image 2 bears out less)
+    if not _median_over(z_on, on) >= FILL_ZNCC:  # (an alignment image 2 bears out less)
         return np.zeros_like(region), z_region
     return beyond & (z_beyond >= FILL_ZNCC), z_region
+
+
+def _median_over(z: np.ndarray, mask: np.ndarray) -> float:
+    """The median of the correlations ``z`` (h, w) over ``mask``'s pixels (h, w) bool where
+    they are defined (:func:`.plane_align.agreement`'s NaN: under half a window); NaN, which
+    reaches no bar, where none is."""
+    v = z[mask]
+    v = v[~np.isnan(v)]
+    return float(np.median(v)) if len(v) else np.nan
 
 
 #: A match off an aligned plane is noise about it where at least this share of the region's
@@ -726,10 +733,9 @@ def _aligned_surface(gray1: np.ndarray, gray2: np.ndarray, norm2: np.ndarray, po
     aligned = align_plane(images, A, e, px, abc)
     if not halves_agree(images, A, e, px, aligned):
         return None
-    z_on, = agreement(gray1, norm2, _homography(pose, aligned), x0, y0, region, (region & among,))
-    z_on = z_on[region & among]
-    z_on = z_on[~np.isnan(z_on)]
-    return aligned if len(z_on) and np.median(z_on) >= ALIGNED_ZNCC else None
+    on = region & among
+    z_on, = agreement(gray1, norm2, _homography(pose, aligned), x0, y0, region, (on,))
+    return aligned if _median_over(z_on, on) >= ALIGNED_ZNCC else None
 
 
 def fill_planes(gray1: np.ndarray, size2: tuple[int, int], tv, uv1: np.ndarray, uv2: np.ndarray, X: np.ndarray,
