@@ -91,3 +91,49 @@ def test_a_striped_patch_alone_is_dropped_and_one_on_a_textured_surface_kept():
     # the same with no repeat within the search: nothing dropped
     out = disp.copy()
     assert drop_repeating(out, repeat_score(gray, 4), -1.0) == 0 and (out == disp).all()
+
+
+def test_a_striped_patch_is_not_anchored_by_the_texture_of_a_surface_beside_it():
+    """A patch of stripes a period off beside a textured box: the windows of its cells near the
+    box take in the box's texture and do not repeat, but the box is another surface (a depth
+    jump between them), so they anchor nothing and the patch goes; the box stays."""
+    rng = np.random.default_rng(2)
+    rows, cols = 40, 400
+    texture = _random_texture(rows, cols, rng)
+    gray = 128 + (texture - 128) * (80 / texture.std())  # the box's texture of as much contrast as the stripes
+    gray[:, 200:] = _stripes(rows, 200, 9, rng)
+    disp = np.full((rows, cols), -1.0, np.float32)
+    disp[:, :200] = 40.0  # the box
+    disp[:, 200:260] = 29.0  # the stripes beside it, a period off
+    score = repeat_score(gray, 64)
+    near_box = score[4:36, 200:200 + WINDOW_HALF]
+    assert ((near_box > -2) & (near_box < ONCE_ZNCC)).mean() > 0.5  # (windows that take in the box's texture)
+    out = disp.copy()
+    drop_repeating(out, score, -1.0)
+    assert (out[4:36, 215:250] == -1.0).mean() > 0.95
+    assert (out[:, :200] == 40.0).all()
+
+
+def test_windows_that_reach_cells_without_an_estimate_still_anchor_their_surface():
+    """A narrow strip of the surface's own texture beside its stripes, unmatched cells all
+    around (as SGM leaves them on a fragmented floor): its windows reach those cells, which
+    hold no other surface, and anchor it; past image 1's frame they would not."""
+    rng = np.random.default_rng(3)
+    rows, cols = 40, 400
+    texture = _random_texture(rows, cols, rng)
+    gray = 128 + (texture - 128) * (80 / texture.std())
+    gray[:, 230:] = _stripes(rows, 170, 9, rng)
+    disp = np.full((rows, cols), -1.0, np.float32)
+    disp[:, 200:300] = 20.0  # 30 columns of texture, then 70 of stripes, one surface
+    score = repeat_score(gray, 64)
+    out = disp.copy()
+    assert drop_repeating(out, score, -1.0) == 0 and (out == disp).all()
+    # the same cells with image 1's frame ending 5 columns past the surface: the windows at
+    # its right end reach beyond the image, the texture's at its left end still anchor it
+    frame = np.tile(np.array([180, 305], np.int64), (rows, 1))
+    out = disp.copy()
+    assert drop_repeating(out, score, -1.0, frame) == 0
+    # ...and with the frame starting where the texture does, nothing anchors it
+    frame[:, 0] = 200 + 2 * WINDOW_HALF
+    out = disp.copy()
+    assert drop_repeating(out, score, -1.0, frame) > 0

@@ -831,7 +831,7 @@ def match_pair_sgm(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config,
     n_rep, repeats = 0, None
     if opt.repeat_check:
         before = disp.copy() if opt.scattered_check else None
-        n_rep = drop_repeating(disp, repeat, min_d - 1.0)
+        n_rep = drop_repeating(disp, repeat, min_d - 1.0, frames[0])
         if n_rep and before is not None:  # the estimates dropped, for their plain regions' verdict (fill_planes)
             repeats = np.where(before > disp, before, np.float32(min_d - 1.0))
         del before
