@@ -93,19 +93,30 @@ def test_a_striped_patch_alone_is_dropped_and_one_on_a_textured_surface_kept():
     assert drop_repeating(out, repeat_score(gray, 4), -1.0) == 0 and (out == disp).all()
 
 
+def _strong_texture(rows, cols, rng):
+    """A random texture of as much contrast as :func:`_stripes`' (80 grey levels' deviation)."""
+    texture = _random_texture(rows, cols, rng)
+    return 128 + (texture - 128) * (80 / texture.std())
+
+
+def _stripes_beside_a_box():
+    """Line image 1 of a textured box (columns 0-199, parallax 40) and stripes beside it
+    matched a period off (200-259, parallax 29), no estimate beyond; and its repeat score."""
+    rng = np.random.default_rng(2)
+    rows, cols = 40, 400
+    gray = _strong_texture(rows, cols, rng)
+    gray[:, 200:] = _stripes(rows, 200, 9, rng)
+    disp = np.full((rows, cols), -1.0, np.float32)
+    disp[:, :200] = 40.0
+    disp[:, 200:260] = 29.0
+    return disp, repeat_score(gray, 64)
+
+
 def test_a_striped_patch_is_not_anchored_by_the_texture_of_a_surface_beside_it():
     """A patch of stripes a period off beside a textured box: the windows of its cells near the
     box take in the box's texture and do not repeat, but the box is another surface (a depth
     jump between them), so they anchor nothing and the patch goes; the box stays."""
-    rng = np.random.default_rng(2)
-    rows, cols = 40, 400
-    texture = _random_texture(rows, cols, rng)
-    gray = 128 + (texture - 128) * (80 / texture.std())  # the box's texture of as much contrast as the stripes
-    gray[:, 200:] = _stripes(rows, 200, 9, rng)
-    disp = np.full((rows, cols), -1.0, np.float32)
-    disp[:, :200] = 40.0  # the box
-    disp[:, 200:260] = 29.0  # the stripes beside it, a period off
-    score = repeat_score(gray, 64)
+    disp, score = _stripes_beside_a_box()
     near_box = score[4:36, 200:200 + WINDOW_HALF]
     assert ((near_box > -2) & (near_box < ONCE_ZNCC)).mean() > 0.5  # (windows that take in the box's texture)
     out = disp.copy()
@@ -120,8 +131,7 @@ def test_windows_that_reach_cells_without_an_estimate_still_anchor_their_surface
     hold no other surface, and anchor it; past image 1's frame they would not."""
     rng = np.random.default_rng(3)
     rows, cols = 40, 400
-    texture = _random_texture(rows, cols, rng)
-    gray = 128 + (texture - 128) * (80 / texture.std())
+    gray = _strong_texture(rows, cols, rng)
     gray[:, 230:] = _stripes(rows, 170, 9, rng)
     disp = np.full((rows, cols), -1.0, np.float32)
     disp[:, 200:300] = 20.0  # 30 columns of texture, then 70 of stripes, one surface
@@ -137,3 +147,28 @@ def test_windows_that_reach_cells_without_an_estimate_still_anchor_their_surface
     frame[:, 0] = 200 + 2 * WINDOW_HALF
     out = disp.copy()
     assert drop_repeating(out, score, -1.0, frame) > 0
+
+
+def test_a_surface_mostly_of_stripes_and_unanchored_goes_whole():
+    """The patch beside the box again: its cells whose windows take in the box's texture do
+    not repeat, but the surface is mostly stripes and its own texture anchors none of it, so
+    those cells go with it; a surface with a minority of repeating cells keeps the rest."""
+    disp, score = _stripes_beside_a_box()
+    assert ((score[4:36, 200:260] > -2) & (score[4:36, 200:260] < REPEAT_ZNCC)).any()  # (cells that do not repeat)
+    out = disp.copy()
+    drop_repeating(out, score, -1.0)
+    assert (out[:, 200:260] == -1.0).all()
+    assert (out[:, :200] == 40.0).all()
+    # a plain surface with a strip of stripes: unanchored too, but mostly plain: its stripes go
+    rng = np.random.default_rng(4)
+    rows, cols = disp.shape
+    gray = 128 + rng.normal(0, 0.5, (rows, cols))
+    gray[:, 300:340] = _stripes(rows, 40, 9, rng)
+    disp = np.full((rows, cols), -1.0, np.float32)
+    disp[:, 150:340] = 29.0
+    score = repeat_score(gray, 64)
+    out = disp.copy()
+    assert drop_repeating(out, score, -1.0) > 0
+    repeats = (score >= REPEAT_ZNCC) & (disp > -1.0)
+    assert repeats[:, 300:340].mean() > 0.3 and (out[repeats] == -1.0).all()
+    assert (out[:, 150:280] == 29.0).all()

@@ -21,7 +21,8 @@ placed by that texture, and its striped part with it; a patch of stripes alone c
 period off. A window that reaches across a depth jump into another surface, or past the
 image's edge, takes in texture that is not the surface's own: a patch of unseen seed 73's
 striped floor, between a textured box and the image's edge, was matched 90 px off and
-anchored by the windows at its two ends. (Cells without an estimate hold no other surface:
+anchored by the windows at its two ends; unanchored, it goes whole where most of its cells
+repeat, its ends with it. (Cells without an estimate hold no other surface:
 a fragmented striped floor's windows reach them, and counted as no anchors, unseen zoom
 seed 59 lost 0.065 of coverage at 1 px, seed 43 with its own pose 0.077.) A patch a period off that its surface's right
 part joins through a slanted floor, whose parallax runs through the period from near to
@@ -96,6 +97,10 @@ STRIDE = 2
 #: A surface is anchored by its cells on windows that do not repeat and lie on it where they
 #: are at least this share of its cells: the blemishes of a striped patch are a few per cent.
 ANCHOR_SHARE = 0.1
+#: An unanchored surface more than this share of whose cells repeat goes whole: it was placed
+#: by its stripes, and its other cells (windows at its ends, between the two scores) with
+#: them. Below it, a surface of mostly other cells (plain, a few stripes) keeps those.
+MOSTLY_REPEATING = 0.5
 
 
 @njit(parallel=True, cache=True)
@@ -248,13 +253,15 @@ def drop_repeating(disp: np.ndarray, score: np.ndarray, invalid: float, frame: n
     texture of its own that does not repeat (:data:`ANCHOR_SHARE`: windows whose row lies
     within image 1's ``frame``, (rows, 2) int64 each row's first and last column in the
     image, default the whole row, and ends on the surface or on a cell without an
-    estimate); returns how many."""
+    estimate), and every estimate of such a surface that mostly repeats
+    (:data:`MOSTLY_REPEATING`); returns how many."""
     if not np.any((score >= REPEAT_ZNCC) & (disp > invalid)):  # (no forest to build)
         return 0
     if frame is None:
         frame = np.tile(np.array([0, disp.shape[1] - 1], np.int64), (disp.shape[0], 1))
     return int(_drop_repeating(disp, score, float(invalid), np.ascontiguousarray(frame, np.int64),
-                               SAME_SURFACE_COLUMNS, REPEAT_ZNCC, ONCE_ZNCC, ANCHOR_SHARE, WINDOW_HALF))
+                               SAME_SURFACE_COLUMNS, REPEAT_ZNCC, ONCE_ZNCC, ANCHOR_SHARE, MOSTLY_REPEATING,
+                               WINDOW_HALF))
 
 
 @njit(cache=True)
@@ -264,7 +271,7 @@ def _on_surface_or_none(disp, parent, j, invalid, root):
 
 
 @njit(cache=True)
-def _drop_repeating(disp, score, invalid, frame, tol, repeat, once, share, half):
+def _drop_repeating(disp, score, invalid, frame, tol, repeat, once, share, mostly, half):
     parent = surface_forest(disp, invalid, tol)
     n = disp.size
     width = disp.shape[1]
@@ -281,11 +288,16 @@ def _drop_repeating(disp, score, invalid, frame, tol, repeat, once, share, half)
                     and _on_surface_or_none(disp, parent, i - half, invalid, root)
                     and _on_surface_or_none(disp, parent, i + half, invalid, root)):
                 anchors[root] += 1
-    dropped = 0
+    repeating = np.zeros(n, np.int64)
     for i in range(n):
         if disp.flat[i] > invalid and score.flat[i] >= repeat:
+            repeating[surface_root(parent, i)] += 1
+    dropped = 0
+    for i in range(n):
+        if disp.flat[i] > invalid:
             root = surface_root(parent, i)
-            if anchors[root] < share * total[root]:
+            if anchors[root] < share * total[root] and (score.flat[i] >= repeat
+                                                         or repeating[root] > mostly * total[root]):
                 disp.flat[i] = invalid
                 dropped += 1
     return dropped
