@@ -21,12 +21,12 @@ placed by that texture, and its striped part with it; a patch of stripes alone c
 period off. A window that reaches across a depth jump into another surface, or past the
 image's edge, takes in texture that is not the surface's own: a patch of unseen seed 73's
 striped floor, between a textured box and the image's edge, was matched 90 px off and
-anchored by the windows at its two ends; unanchored, it goes whole where most of its cells
-repeat, its ends with it. (Cells without an estimate hold no other surface:
-a fragmented striped floor's windows reach them, and counted as no anchors, unseen zoom
-seed 59 lost 0.065 of coverage at 1 px, seed 43 with its own pose 0.077.) A patch a period off that its surface's right
-part joins through a slanted floor, whose parallax runs through the period from near to
-far, is kept with it (elsewhere on seed 73's floor).
+anchored by the windows at its two ends. Unanchored, a surface goes whole where most of its
+cells repeat (:data:`MOSTLY_REPEATING`), the cells at its ends with it. (Cells without an
+estimate hold no other surface: a fragmented striped floor's windows reach them, and
+counted as no anchors, unseen zoom seed 59 lost 0.065 of coverage at 1 px, seed 43 with
+its own pose 0.077.) A patch a period off that its surface's right part joins through a
+slanted floor, whose parallax runs through the period from near to far, is kept with it.
 
 SGM matches the colour line images, so stripes of two colours of one brightness mislead
 it as much as grey stripes do, while their grey values hold only the sensor noise. Each
