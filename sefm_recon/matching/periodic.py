@@ -277,10 +277,13 @@ def _drop_repeating(disp, score, invalid, frame, tol, repeat, once, share, mostl
     width = disp.shape[1]
     total = np.zeros(n, np.int64)
     anchors = np.zeros(n, np.int64)
+    repeating = np.zeros(n, np.int64)
     for i in range(n):
         if disp.flat[i] > invalid:
             root = surface_root(parent, i)
             total[root] += 1
+            if score.flat[i] >= repeat:
+                repeating[root] += 1
             r, x = i // width, i % width
             # an anchor's window lies in the image and on its surface: its row's end cells
             # on it or without an estimate, not on another surface (:func:`drop_repeating`)
@@ -288,10 +291,6 @@ def _drop_repeating(disp, score, invalid, frame, tol, repeat, once, share, mostl
                     and _on_surface_or_none(disp, parent, i - half, invalid, root)
                     and _on_surface_or_none(disp, parent, i + half, invalid, root)):
                 anchors[root] += 1
-    repeating = np.zeros(n, np.int64)
-    for i in range(n):
-        if disp.flat[i] > invalid and score.flat[i] >= repeat:
-            repeating[surface_root(parent, i)] += 1
     dropped = 0
     for i in range(n):
         if disp.flat[i] > invalid:
