@@ -357,3 +357,31 @@ def test_a_small_region_on_its_rims_plane_with_its_own_signal_or_a_rim_on_two_su
     uv1, uv2, X, _ = _slanted(tv, px[kept], wave)
     fill = fill_planes(gray, (W, H), tv, uv1, uv2, X)
     assert len(fill.uv1) == 0
+
+
+def test_a_mostly_unmatched_region_on_the_ties_at_the_searchs_first_parallax_drops_them():
+    """A third of the plain square matched on one plane: a plain wall found in part, filled
+    between its matches. Where that plane is the first parallax SGM searched (within
+    TIE_COLUMNS of it), it is where OpenCV breaks the ties of a cost without a minimum: the
+    matches go and nothing is filled. A plane 5 columns beyond the first parallax (Midd1's
+    wall past the SIFT points) stays."""
+    from sefm_recon.matching.lines import line_grid, match_parallax
+    from sefm_recon.matching.planes import TIE_COLUMNS, SearchStart
+
+    tv, gray = _scene()
+    rng = np.random.default_rng(3)
+    px = _plain_pixels()
+    some = px[rng.random(len(px)) < 0.3]
+    uv1, uv2, X = _matches(tv, some)
+    grid = line_grid(tv, (W, H), (W, H))
+    d = match_parallax(grid, tv, uv1, uv2)
+    assert np.ptp(d) < 1.0 and 10 < np.median(d) < 14  # a frontal plane: about a column a px
+    at_ties = SearchStart(grid, float(d.max()) - TIE_COLUMNS + 0.5)
+    out = fill_planes(gray, (W, H), tv, uv1, uv2, X, start=at_ties)
+    assert len(out.uv1) == 0 and len(out.dropped) == len(uv1)
+    kept = fill_planes(gray, (W, H), tv, uv1, uv2, X, start=at_ties, drop=False)
+    assert len(kept.uv1) == 0 and len(kept.dropped) == 0  # neither dropped nor filled
+    beyond = fill_planes(gray, (W, H), tv, uv1, uv2, X, start=SearchStart(grid, float(d.min()) - 5.0))
+    assert len(beyond.dropped) == 0 and len(beyond.uv1) > 0.5 * (len(px) - len(some))
+    most = px[rng.random(len(px)) < 0.7]  # mostly matched: SGM found the surface there
+    assert len(fill_planes(gray, (W, H), tv, *_matches(tv, most), start=at_ties).dropped) == 0

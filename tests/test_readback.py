@@ -107,3 +107,16 @@ def test_the_outermost_pixel_rows_read_back_as_every_other_row():
         uv1, _, _, _ = pixel_matches(_plane_disparities(tv, grid, width, 8.0), 0.0, grid, tv, (320, 240), (320, 240))
         per_row = np.bincount(np.floor(uv1[:, 1]).astype(int), minlength=240)
         assert per_row[120] > 200 and per_row[outer] >= per_row[120] - 2  # (a corner's partner may leave image 2)
+
+
+def test_the_matches_read_back_from_one_disparity_have_that_parallax():
+    from sefm_recon.matching.lines import match_parallax
+    from sefm_recon.matching.readback import pixel_matches
+
+    tv = two_view(rot_y(0.1), [-1.0, 0.05, 0.1])
+    grid = line_grid(tv, (320, 240), (320, 240))
+    grid.pad = 40
+    disp = np.full((len(grid.phi), grid.pad + grid.columns + 1), 17.25, np.float32)
+    uv1, uv2, _, _ = pixel_matches(disp, 0.0, grid, tv, (320, 240), (320, 240))
+    assert len(uv1) > 1000
+    np.testing.assert_allclose(match_parallax(grid, tv, uv1, uv2), 17.25, atol=1e-6)

@@ -35,7 +35,7 @@ from ..geometry.epipolar import line_pairs, phi_steps, ray_angles
 from ..geometry.two_view import TwoView
 
 __all__ = ["ROW_SPACING_PX", "COLUMN_SPACING_PX", "EPIPOLE_MARGIN_PX", "LineGrid", "line_grid", "pixel_grid",
-           "line_images", "log_tan_half", "rays", "project"]
+           "line_images", "log_tan_half", "match_parallax", "rays", "project"]
 
 #: Neighbouring rows are at most this far apart (px) anywhere in either image: the pixel
 #: pitch, so that a 5x5 window of the line images spans 5x5 pixels, the support StereoSGBM's
@@ -90,6 +90,14 @@ class LineGrid:
 def log_tan_half(alpha) -> np.ndarray:
     """``log tan(alpha / 2)`` of ray angles in (0, pi): the column coordinate before scaling."""
     return np.log(np.tan(0.5 * np.asarray(alpha, np.float64)))
+
+
+def match_parallax(grid: LineGrid, tv: TwoView, uv1: np.ndarray, uv2: np.ndarray) -> np.ndarray:
+    """(N,) float64: the parallax in the grid's columns (``x1 - x2``, image 2's line image
+    unshifted) of matches ``uv1``, ``uv2`` (N, 2) COLMAP positions, each pair on one epipolar line."""
+    a1 = ray_angles(tv.K1, np.eye(3), grid.basis, uv1)[1]
+    a2 = ray_angles(tv.K2, tv.R.T, grid.basis, uv2)[1]
+    return (log_tan_half(a2) - log_tan_half(a1)) / grid.u_step
 
 
 def pixel_grid(width: int, height: int, step: float = 4.0) -> np.ndarray:

@@ -25,6 +25,8 @@ its pixels align (:mod:`.plane_align`): then its matches near it move onto it, t
 others are dropped and its holes filled. Else, with most of them off any one plane, the
 matcher found no surface there at all, and they are dropped (:data:`MAX_SCATTERED_SUPPORT`);
 the estimates the repeat check dropped there (:mod:`.periodic`) count in that test with them.
+So are those of a mostly unmatched region whose plane is the first parallax of the search,
+where OpenCV breaks the ties of a cost without a minimum (:data:`TIE_COLUMNS`).
 Where they do mostly lie on one plane, the ones off it face the same test: patches carried
 over the plain surface on no one plane, or on one within SGM's wave about the first, are
 dropped, a second surface in the region stays (:data:`MIN_OFF_PLANE`).
@@ -57,10 +59,11 @@ import numpy as np
 from numba import njit
 
 from ..arrays import quiet_windows
+from .lines import LineGrid, match_parallax
 from .plane_align import (AGREE_PX, ALIGNED_ZNCC, FILL_ZNCC, MIN_HALF_PIXELS, NORM_RADIUS, SIGMAS, agreement,
                           align_images, align_plane, halves_agree, normalised)
 
-__all__ = ["PlaneFill", "fill_planes", "plain_regions"]
+__all__ = ["PlaneFill", "SearchStart", "fill_planes", "plain_regions"]
 
 #: Intensity edges cut the regions: a pixel whose gradient (Sobel, after a Gaussian of 1 px
 #: that takes out most of the sensor noise) exceeds this many grey levels per pixel is an
@@ -105,6 +108,19 @@ MIN_PLANE_SUPPORT = 0.6
 #: one region 41 % matched, 53 % on one plane, lost 0.114 of coverage (its matches 56 % right
 #: at 1 px, 92 % at 3 px).
 MAX_SCATTERED_SUPPORT = 0.5
+#: A region under :data:`MOSTLY_UNMATCHED_SHARE` matched whose plane's matches lie mostly
+#: (over half) within this many columns of the first parallax SGM searched holds no surface
+#: the matcher found either: OpenCV breaks the ties of a cost without a minimum at its first
+#: parallax, the check of the search's ends (:func:`.checks.drop_range_ends`) drops those
+#: within a column of it, and the smoothness penalty for a column's step lets a plain surface's
+#: ties spread a column or two from there, all on one plane (the first parallax's). Unseen
+#: generated seed 148's plain floor under uneven light: 13,125 matches, 8,944 of them on one
+#: plane 1.0-2.8 columns from the first parallax (median 1.7), every one over 3 px off, and
+#: the fill carried that plane over 17,861 more pixels; Monopoly's black background 1.0-3.2
+#: columns (its matches 0.31-0.64 right at 1 px). The real walls beyond the SIFT points,
+#: whose parallax is that far end (Midd1, Midd2: 24-37 % matched, on one plane), lie 5.0-8.1
+#: columns from it (medians).
+TIE_COLUMNS = 3.0
 #: In a region under :data:`MOSTLY_UNMATCHED_SHARE` matched whose matches do lie on one plane,
 #: the matches off it face the same test: on a second plane (at least
 #: :data:`MAX_SCATTERED_SUPPORT` of them within 1 px of one homography) they are a second
@@ -217,6 +233,13 @@ class PlaneFill(NamedTuple):
     moved_uv2: np.ndarray  #: (M, 2) their new partners in image 2, on their epipolar lines
     moved_xyz: np.ndarray  #: (M, 3) their new points, camera 1's frame
     dropped: np.ndarray  #: (D,) indices of the given matches on no surface (:data:`MAX_SCATTERED_SUPPORT`)
+
+
+class SearchStart(NamedTuple):
+    """Where SGM's search began, for :data:`TIE_COLUMNS`."""
+
+    grid: LineGrid  #: the line images' grid (:func:`.lines.match_parallax` of the matches)
+    first: float  #: the first parallax searched (columns, the shifted line image 2's 0)
 
 
 def plain_regions(gray: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -652,6 +675,15 @@ def _agreeing(gray1: np.ndarray, norm2: np.ndarray, pose: _Pose, abc: np.ndarray
     return beyond & (z_beyond >= FILL_ZNCC), z_region
 
 
+def _at_ties(start: SearchStart, tv, uv1: np.ndarray, uv2: np.ndarray) -> bool:
+    """Whether over half of the matches ``uv1``, ``uv2`` (N, 2) lie within :data:`TIE_COLUMNS`
+    of the first parallax searched (``start``)."""
+    if len(uv1) == 0:
+        return False
+    d = match_parallax(start.grid, tv, uv1, uv2)
+    return bool(np.count_nonzero(d < start.first + TIE_COLUMNS) > 0.5 * len(d))
+
+
 def _median_over(z: np.ndarray, mask: np.ndarray) -> float:
     """The median of the correlations ``z`` (h, w) over ``mask``'s pixels (h, w) bool where
     they are defined (:func:`.plane_align.agreement`'s NaN: under half a window); NaN, which
@@ -741,7 +773,8 @@ def _aligned_surface(gray1: np.ndarray, gray2: np.ndarray, norm2: np.ndarray, po
 def fill_planes(gray1: np.ndarray, size2: tuple[int, int], tv, uv1: np.ndarray, uv2: np.ndarray, X: np.ndarray,
                 *, fill: bool = True, snap: bool = True, drop: bool = True, rims: bool = True,
                 gray2: np.ndarray | None = None,
-                repeats: tuple[np.ndarray, np.ndarray] | None = None, seed: int = 0) -> PlaneFill:
+                repeats: tuple[np.ndarray, np.ndarray] | None = None, start: SearchStart | None = None,
+                seed: int = 0) -> PlaneFill:
     """Partners for the unmatched pixels of image 1's large plain regions whose matches lie on
     one plane, or whose plane the intensities align (``fill``: among those matches, and for an
     aligned plane beyond them where image 2 under it agrees, :func:`_agreeing`), for
@@ -753,7 +786,8 @@ def fill_planes(gray1: np.ndarray, size2: tuple[int, int], tv, uv1: np.ndarray, 
     (``drop``, :data:`MAX_SCATTERED_SUPPORT`, :data:`MIN_OFF_PLANE`);
     with ``rims``, the same fill and move for the small regions from their rim's plane
     (:func:`_rim_planes`). A region's matches are also dropped where, judged together with
-    the ``repeats`` (:data:`MAX_SCATTERED_SUPPORT`), they lie on no one plane.
+    the ``repeats`` (:data:`MAX_SCATTERED_SUPPORT`), they lie on no one plane, and where it is
+    mostly unmatched and its plane is the ties at the ``start`` of the search (:data:`TIE_COLUMNS`).
 
     Args:
         gray1: (H, W) uint8 image 1 (working size).
@@ -765,6 +799,7 @@ def fill_planes(gray1: np.ndarray, size2: tuple[int, int], tv, uv1: np.ndarray, 
             (:mod:`.periodic`) dropped: part of what the matcher found on a plain region.
             Its stripes taken out, a striped plain wall's few matches left beside the objects
             in front of it lie mostly on one plane, while all that SGM found there does not.
+        start: where SGM's search began (None: no test of ties).
     Returns the added matches, the moved ones and the ones to drop (:class:`PlaneFill`); the
     arguments are not changed.
     """
@@ -797,6 +832,10 @@ def fill_planes(gray1: np.ndarray, size2: tuple[int, int], tv, uv1: np.ndarray, 
         support = np.mean(on_plane)  # (judged on every match of the region, before any is dropped)
         if few and rep_lab is not None and _scattered_with(uv1[idx], uv2[idx], repeats, rep_lab == k, areas[k], seed):
             dropped.append(idx)
+            continue
+        if few and start is not None and _at_ties(start, tv, uv1[idx[on_plane]], uv2[idx[on_plane]]):
+            if drop:  # its plane is the search's first parallax: ties, no surface found
+                dropped.append(idx)
             continue
         aligned = None
         if support < MIN_PLANE_SUPPORT and gray2 is not None and (few or fill):

@@ -41,7 +41,7 @@ from .checks import (drop_carried_plain, drop_collisions, drop_fattened_cells, d
                      flat_windows)
 from .lines import LineGrid, line_grid, line_images, pixel_grid
 from .periodic import drop_repeating, repeat_score
-from .planes import fill_planes
+from .planes import SearchStart, fill_planes
 from .readback import pixel_matches
 from .sefm import DenseMatches, depth_range
 from .stereo_sgbm import (BLOCK, JUMP_PENALTY, LR_MAX_DIFF, STEP_PENALTY, num_disparities, sgbm_disparity,
@@ -855,6 +855,7 @@ def match_pair_sgm(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config,
     if opt.planes or opt.plane_snap or opt.scattered_check:
         pf = fill_planes(to_gray(img1), size2, tv, uv1, uv2, X, fill=opt.planes, snap=opt.plane_snap,
                          drop=opt.scattered_check, rims=opt.rim_planes, repeats=repeats,
+                         start=SearchStart(grid, float(min_d)) if opt.scattered_check else None,
                          gray2=to_gray(img2) if opt.aligned_planes else None)
         n_planes, n_moved, n_scattered = len(pf.uv1), len(pf.moved), len(pf.dropped)
         uv2[pf.moved] = pf.moved_uv2
