@@ -116,10 +116,11 @@ MAX_SCATTERED_SUPPORT = 0.5
 #: ties spread a column or two from there, all on one plane (the first parallax's). Unseen
 #: generated seed 148's plain floor under uneven light: 13,125 matches, 8,944 of them on one
 #: plane 1.0-2.8 columns from the first parallax (median 1.7), every one over 3 px off, and
-#: the fill carried that plane over 17,861 more pixels; Monopoly's black background 1.0-3.2
-#: columns (its matches 0.31-0.64 right at 1 px). The real walls beyond the SIFT points,
+#: the fill carried that plane over 17,861 more pixels (the pair 0.896 / 0.939 -> 0.936 /
+#: 0.981 at 1 / 3 px). Monopoly's black background: 1.0-3.2 columns, and dropped, its
+#: precision at 1 px +0.001-0.006 at the same coverage. The real walls beyond the SIFT points,
 #: whose parallax is that far end (Midd1, Midd2: 24-37 % matched, on one plane), lie 5.0-8.1
-#: columns from it (medians).
+#: columns from it (medians); seeds 0-99 hold no region on the ties.
 TIE_COLUMNS = 3.0
 #: In a region under :data:`MOSTLY_UNMATCHED_SHARE` matched whose matches do lie on one plane,
 #: the matches off it face the same test: on a second plane (at least
