@@ -281,7 +281,7 @@ class SgmConfig:
     wide_fit: bool = True
     planes: bool = True  #: fill large plain regions whose matches lie on one plane (:mod:`.matching.planes`)
     plane_snap: bool = True  #: move the matches without signal of large plain regions that are one plane onto it (:mod:`.matching.planes`)
-    scattered_check: bool = True  #: drop the matches of large plain regions mostly unmatched whose matches lie on no one plane (:mod:`.matching.planes`)
+    scattered_check: bool = True  #: drop the matches of large plain regions mostly unmatched whose matches lie on no one plane, or on the ties at the search's first parallax (:mod:`.matching.planes`)
     aligned_planes: bool = True  #: align plain regions' planes by the intensities where their halves agree: kept and filled then, not dropped (:mod:`.matching.plane_align`)
     rim_planes: bool = True  #: fill and move the small plain regions' pixels onto the plane of their rim's matches (:mod:`.matching.planes`)
 

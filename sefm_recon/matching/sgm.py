@@ -889,7 +889,8 @@ def match_pair_sgm(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config,
                 "along the lines on surfaces without other texture, %d in runs matching image 1's edge to image 2's "
                 "and %d fattened at depth edges dropped), %d on plain windows fitted to their surface's plane "
                 "and %d moved onto a wider window's plane, %d filled on plain planes and %d moved onto them, %d on "
-                "plain regions mostly unmatched and on no one plane (or off theirs on no second one) dropped, %d valid",
+                "plain regions mostly unmatched and on no one plane (or off theirs on no second one, or on the ties at the "
+                "search's first parallax) dropped, %d valid",
                 "4 full paths" if full else "3 directions", counts["line_pairs"], n_dense, n_half, n_off, n_lr, n_ends,
                 n_flat, n_out, n_col, n_occ, n_car, n_far, n_near, n_coarse, n_rep, n_frame, n_fat, n_fit, n_wide,
                 n_planes, n_moved, n_scattered, len(uv1))
