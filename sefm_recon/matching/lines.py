@@ -94,10 +94,11 @@ def log_tan_half(alpha) -> np.ndarray:
 
 def match_parallax(grid: LineGrid, tv: TwoView, uv1: np.ndarray, uv2: np.ndarray) -> np.ndarray:
     """(N,) float64: the parallax in the grid's columns (``x1 - x2``, image 2's line image
-    unshifted) of matches ``uv1``, ``uv2`` (N, 2) COLMAP positions, each pair on one epipolar line."""
+    unshifted: :meth:`LineGrid.column` of each ray) of matches ``uv1``, ``uv2`` (N, 2) COLMAP
+    positions, each pair on one epipolar line."""
     a1 = ray_angles(tv.K1, np.eye(3), grid.basis, uv1)[1]
     a2 = ray_angles(tv.K2, tv.R.T, grid.basis, uv2)[1]
-    return (log_tan_half(a2) - log_tan_half(a1)) / grid.u_step
+    return grid.column(a1) - grid.column(a2)
 
 
 def pixel_grid(width: int, height: int, step: float = 4.0) -> np.ndarray:

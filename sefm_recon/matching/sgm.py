@@ -33,13 +33,12 @@ from numba import njit, prange
 from ..arrays import append_rows
 from ..config import Config
 from ..errors import InputError
-from ..geometry.epipolar import ray_angles
 from ..geometry.two_view import TwoView
 from ..io.images import to_gray
 from .checks import (drop_carried_plain, drop_collisions, drop_fattened_cells, drop_flat_windows, drop_frame_end_runs,
                      drop_occluded_plain, drop_outside_windows, drop_range_ends, drop_unanchored_far, drop_unseen_far,
                      flat_windows)
-from .lines import LineGrid, line_grid, line_images, pixel_grid
+from .lines import LineGrid, line_grid, line_images, match_parallax, pixel_grid
 from .periodic import drop_repeating, repeat_score
 from .planes import SearchStart, fill_planes
 from .readback import pixel_matches
@@ -232,9 +231,7 @@ def every_parallax(tv: TwoView, grid: LineGrid, size1: tuple[int, int]) -> tuple
 def sift_parallax_columns(tv: TwoView, grid: LineGrid) -> tuple[float, float]:
     """(lo, hi) columns of parallax of the SIFT inliers (``tv.kp1``/``tv.kp2``, at least
     one): their 1st and 99th percentiles, so that a stray inlier does not widen them."""
-    _, a1 = ray_angles(tv.K1, np.eye(3), grid.basis, tv.kp1)
-    _, a2 = ray_angles(tv.K2, tv.R.T, grid.basis, tv.kp2)
-    lo, hi = np.percentile(grid.column(a1) - grid.column(a2), [1, 99])
+    lo, hi = np.percentile(match_parallax(grid, tv, tv.kp1, tv.kp2), [1, 99])
     return float(lo), float(hi)
 
 
