@@ -258,3 +258,51 @@ def test_an_aligned_floor_is_filled_beyond_its_matches_where_image_2_shows_it_an
     assert filled[hidden[:, 1].astype(int), hidden[:, 0].astype(int)].mean() < 0.05
     # without image 2 nothing is aligned: the floor's scattered matches go, nothing is filled
     assert len(fill_planes(one, (W, H), TV, uv1, uv2, X).uv1) == 0
+
+
+def test_an_object_in_front_of_an_aligned_floor_keeps_its_matches():
+    """The mostly unmatched floor of the tests above, and on it a plain box face of 48 x 48 px
+    with no intensity edge between them, its pixels 70 % matched 6 px nearer (one patch well
+    over 1/500 of the view) and its faint texture not the floor's (image 2 under the floor's
+    plane does not match it). The floor's plane aligns; the box's matches stay where they are,
+    off the plane, and the floor's own matches off the plane go as before: farther ones, and
+    nearer ones scattered in patches of a few pixels. With the floor's own texture where the
+    box is in image 1, the same patch is noise on the floor (image 2 under the plane matches
+    it) and goes."""
+    one, two, uv1, uv2, X, err = _plain_floor_scene()
+    floor_only = one.copy()
+    # the box face in image 1: a faint texture of its own, blended in over a few pixels (no edge)
+    face = np.zeros((H, W), np.float32)
+    face[100:148, 130:178] = 1.0
+    face = cv2.GaussianBlur(face, (0, 0), 3.0)
+    one = np.clip(np.rint(one * (1 - face) + _texture(13, 3.0) * face), 0, 255).astype(np.uint8)
+    box = (uv1[:, 0] > 130) & (uv1[:, 0] < 178) & (uv1[:, 1] > 100) & (uv1[:, 1] < 148)
+    floor1, floor2, err = uv1[~box], uv2[~box], err[~box]
+    ys, xs = np.mgrid[101:148, 131:178]
+    px = np.column_stack([xs.ravel() + 0.5, ys.ravel() + 0.5])
+    px = px[np.random.default_rng(9).random(len(px)) < 0.7]
+    box2 = px - np.column_stack([_parallax(FLOOR, px) + 6.0, np.zeros(len(px))])
+    uv1, uv2 = np.concatenate([floor1, px]), np.concatenate([floor2, box2])
+    X, ok, _ = triangulate(TV.K1, TV.K2, TV.R, TV.t, uv1, uv2)
+    assert ok.all()
+    on_box = np.arange(len(uv1)) >= len(floor1)
+    region = np.zeros(len(uv1), bool)  # the floor's matches (without image 2 they scatter, and go)
+    region[fill_planes(one, (W, H), TV, uv1, uv2, X).dropped] = True
+    assert region[~on_box].mean() > 0.95
+    out = fill_planes(one, (W, H), TV, uv1, uv2, X, gray2=two)
+    gone = np.zeros(len(uv1), bool)
+    gone[out.dropped] = True
+    moved = np.zeros(len(uv1), bool)
+    moved[out.moved] = True
+    # (a box pixel whose neighbours all went unmatched is a patch of its own, and goes)
+    assert gone[on_box].mean() < 0.01 and not moved[on_box].any()
+    # (the floor's nearer matches touching the box join its patch)
+    by_box = (floor1[:, 0] > 128) & (floor1[:, 0] < 180) & (floor1[:, 1] > 98) & (floor1[:, 1] < 150)
+    floor_gone = gone[~on_box]
+    assert floor_gone[region[~on_box] & ~by_box & (err > 3.1)].all() and not floor_gone[err <= 2.9].any()
+    assert len(out.uv1) > len(floor1)  # the floor is filled
+    # where image 1 shows the floor's own texture, image 2 under the plane matches it there:
+    # the patch is SGM's noise on the floor, and goes
+    gone[:] = False
+    gone[fill_planes(floor_only, (W, H), TV, uv1, uv2, X, gray2=two).dropped] = True
+    assert gone[on_box].all()

@@ -22,8 +22,10 @@ plane RANSAC finds is aligned by the intensities (:mod:`.plane_align`), and its 
 stay. Where they cover under half of it and lie too little on one plane, SGM's
 estimates may follow the noise of a weakly textured plane, which the intensities of all
 its pixels align (:mod:`.plane_align`): then its matches near it move onto it, the
-others are dropped and its holes filled. Else, with most of them off any one plane, the
-matcher found no surface there at all, and they are dropped (:data:`MAX_SCATTERED_SUPPORT`);
+others are dropped, but for a large patch in front of it where image 2 does not bear the
+plane out (an object standing before the plain surface, :func:`_nearer_surface`), and its
+holes are filled. Else, with most of them off any one plane, the matcher found no surface
+there at all, and they are dropped (:data:`MAX_SCATTERED_SUPPORT`);
 the estimates the repeat check dropped there (:mod:`.periodic`) count in that test with them.
 So are those of a mostly unmatched region whose plane is the first parallax of the search,
 where OpenCV breaks the ties of a cost without a minimum (:data:`TIE_COLUMNS`).
@@ -62,6 +64,7 @@ from ..arrays import quiet_windows
 from .lines import LineGrid, match_parallax
 from .plane_align import (AGREE_PX, ALIGNED_ZNCC, FILL_ZNCC, MIN_HALF_PIXELS, NORM_RADIUS, SIGMAS, agreement,
                           align_images, align_plane, halves_agree, normalised)
+from .stereo_sgbm import SPECKLE_SHARE
 
 __all__ = ["PlaneFill", "SearchStart", "fill_planes", "plain_regions"]
 
@@ -138,6 +141,21 @@ TIE_COLUMNS = 3.0
 #: Fewer than this many matches off the plane are too few for a homography (4 points fix one,
 #: and RANSAC needs some to spare) and stay.
 MIN_OFF_PLANE = 8
+#: A mostly unmatched region whose plane the intensities align keeps the matches within
+#: :data:`RIM_SNAP_PX` of it and drops the others as SGM's noise about it, except those in
+#: front of the plane that join into a patch of at least this share of image 1 (8-neighbours)
+#: where image 2 under the plane does not match image 1 (:func:`_nearer_surface`): an object
+#: standing before the plain surface with no intensity edge between them. The share is the
+#: speckle filter's bar (:data:`.stereo_sgbm.SPECKLE_SHARE`: a patch of under 1/500 of the
+#: view is more often a wrong minimum than a surface); matches behind the plane would be seen
+#: through it. Generated seeds 1, 8, 29, 66, 68, 75, 76 and 78 (true pose; those of 0-99
+#: where such patches are found), the matches off such planes: behind them none right at 1
+#: px; in front, in smaller patches 0.00-0.07 (seeds 75, 76 and 78: 0.33-0.65), in patches
+#: of that size 0.48-1.00 where the plane's agreement over the patch (its median) was -0.31
+#: to 0.71 (seed 66's plain box faces on a plain floor of the same grey: 37,122 matches), and
+#: 0.00-0.01 where it was 0.84-0.96 (SGM's blotches on seeds 68's and 78's floors). One patch
+#: on seed 78's dark sphere (agreement 0.03, 2,491 matches, none right) stays.
+NEARER_SURFACE_SHARE = SPECKLE_SHARE
 #: Matches a region's plane (or homography) is fitted from at most (a seeded random subset):
 #: it has 3 parameters (8); thousands fix it, millions only cost RANSAC's time.
 MAX_FIT_MATCHES = 5000
@@ -640,6 +658,36 @@ def _rim_planes(tv, pose: _Pose, labels: np.ndarray, stats: np.ndarray, uv1: np.
     return add1, add2, moved, planes
 
 
+def _nearer_surface(gray1: np.ndarray, norm2: np.ndarray, pose: _Pose, abc: np.ndarray, labels: np.ndarray,
+                    stats: np.ndarray, k: int, uv1: np.ndarray, z: np.ndarray) -> np.ndarray:
+    """Which of region ``k``'s matches off its aligned plane ``abc`` (:func:`_inverse_depth_plane`)
+    lie on a surface in front of it: nearer than the plane at their pixel, joined (8-neighbours
+    in image 1) into a patch of at least :data:`NEARER_SURFACE_SHARE` of image 1's pixels, where
+    image 2 under the plane does not match image 1 (the median of :func:`.plane_align.agreement`
+    over the patch under :data:`.plane_align.FILL_ZNCC`, the fill's bar: where it does, the
+    plane is what both views see). ``gray1``: (H, W) uint8 image 1; ``norm2``: image 2
+    normalised (:func:`.plane_align.normalised`); ``labels``, ``stats``: :func:`plain_regions`;
+    ``uv1`` (N, 2) COLMAP positions, ``z`` (N,) their depths; (N,) bool."""
+    out = np.zeros(len(uv1), bool)
+    nearer = 1.0 / z > uv1 @ abc[:2] + abc[2]
+    x0, y0, bw, bh = stats[k, :4]
+    px = uv1[nearer].astype(np.int64) - [x0, y0]  # (the region's matches: within its box)
+    mask = np.zeros((bh, bw), np.uint8)
+    mask[px[:, 1], px[:, 0]] = 1
+    n, patch, sizes, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
+    large = np.flatnonzero(sizes[:, cv2.CC_STAT_AREA] >= NEARER_SURFACE_SHARE * gray1.size)
+    large = large[large > 0]  # (0: the background)
+    if len(large) == 0:
+        return out
+    masks = tuple(patch == j for j in large)
+    region = labels[y0:y0 + bh, x0:x0 + bw] == k
+    z_patches = agreement(gray1, norm2, _homography(pose, abc), x0, y0, region, masks)
+    front = np.zeros(n, bool)
+    front[large] = [not _median_over(zz, m) >= FILL_ZNCC for zz, m in zip(z_patches, masks)]
+    out[nearer] = front[patch[px[:, 1], px[:, 0]]]
+    return out
+
+
 def _among_plane_matches(labels: np.ndarray, stats: np.ndarray, k: int, on1: np.ndarray):
     """Over region ``k``'s bounding box and a :data:`HOLE_WINDOW` window's reach around it:
     ``(x0, y0, region, among)``, the box's top-left pixel, which of its pixels are the
@@ -854,11 +902,14 @@ def fill_planes(gray1: np.ndarray, size2: tuple[int, int], tv, uv1: np.ndarray, 
         if few and aligned is not None:
             # one plane under the region's noise: its matches near it move onto it, the rest go
             on_plane = _plane_distance(pose, uv1[idx], uv2[idx], abc) <= RIM_SNAP_PX
-            if drop:
-                dropped.append(idx[~on_plane])
-                gone = uv1[idx[~on_plane]].astype(np.int64)
+            if drop:  # (but a surface in front of the plane stays, off it)
+                off = idx[~on_plane]
+                front = _nearer_surface(gray1, norm2(), pose, abc, labels, stats, k, uv1[off], X[off, 2])
+                dropped.append(off[~front])
+                gone = uv1[off[~front]].astype(np.int64)
                 index[gone[:, 1], gone[:, 0]] = -1
-                idx, on_plane = idx[on_plane], on_plane[on_plane]
+                idx = np.concatenate([idx[on_plane], off[front]])
+                on_plane = np.arange(len(idx)) < np.count_nonzero(on_plane)
             if snap:
                 moved.append(idx[on_plane])
                 planes.append(np.broadcast_to(abc, (int(on_plane.sum()), 3)))
