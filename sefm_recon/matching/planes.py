@@ -545,6 +545,13 @@ def _snap_plane(pose: _Pose, uv1: np.ndarray, uv2: np.ndarray, z: np.ndarray,
     return _iterated_plane(pose, uv1, uv2, z, inliers, SNAP_FITS, SNAP_PX, SNAP_SHARE)
 
 
+def _in_front(uv1: np.ndarray, z: np.ndarray, abc: np.ndarray) -> np.ndarray:
+    """Which of the points seen at ``uv1`` (N, 2) at depths ``z`` (N,) lie nearer camera 1 than
+    the plane ``abc`` (:func:`_inverse_depth_plane`): their inverse depth above the plane's
+    there; (N,) bool."""
+    return 1.0 / z > uv1 @ abc[:2] + abc[2]
+
+
 def _plane_distance(pose: _Pose, uv1: np.ndarray, uv2: np.ndarray, abc: np.ndarray) -> np.ndarray:
     """(N,) px from each match ``uv2`` to the partner the plane ``abc`` gives ``uv1`` (inf behind a camera)."""
     return _distance_to_plane(np.ascontiguousarray(uv1, np.float64), np.ascontiguousarray(uv2, np.float64),
@@ -669,7 +676,7 @@ def _nearer_surface(gray1: np.ndarray, norm2: np.ndarray, pose: _Pose, abc: np.n
     normalised (:func:`.plane_align.normalised`); ``labels``, ``stats``: :func:`plain_regions`;
     ``uv1`` (N, 2) COLMAP positions, ``z`` (N,) their depths; (N,) bool."""
     out = np.zeros(len(uv1), bool)
-    nearer = 1.0 / z > uv1 @ abc[:2] + abc[2]
+    nearer = _in_front(uv1, z, abc)
     x0, y0, bw, bh = stats[k, :4]
     px = uv1[nearer].astype(np.int64) - [x0, y0]  # (the region's matches: within its box)
     mask = np.zeros((bh, bw), np.uint8)
@@ -767,8 +774,7 @@ def _noise_about(pose: _Pose, uv1: np.ndarray, uv2: np.ndarray, z_depth: np.ndar
     on = d <= AGREE_PX
     if np.mean(on) < MIN_PLANE_SUPPORT:  # (no one plane the region's matches lie on)
         return np.zeros(len(uv1), bool)
-    # nearer than the plane (inverse depth above it) or farther
-    nearer = 1.0 / z_depth - (uv1 @ abc[:2] + abc[2]) > 0
+    nearer = _in_front(uv1, z_depth, abc)  # (else farther)
     iy, ix = uv1[:, 1].astype(np.int64) - y0, uv1[:, 0].astype(np.int64) - x0
     win = (2 * NORM_RADIUS + 1, 2 * NORM_RADIUS + 1)
 
