@@ -333,15 +333,23 @@ def test_a_rim_whose_matches_scatter_up_to_two_px_about_its_plane_still_gives_it
     assert len(fill_planes(gray, (W, H), tv, uv1, uv2, X).uv1) == 0
 
 
-def test_a_small_region_on_its_rims_plane_with_its_own_signal_or_a_rim_on_two_surfaces_stays():
+def test_a_small_region_holding_another_surface_open_on_one_side_or_with_a_rim_on_two_surfaces_stays():
     tv, gray, px, square = _small_square_scene()
-    # matches within 0.1 px of the plane (a surface SGM follows): they keep their own estimate
+    # half of the region matched on one plane of its own within 0.1 px, a nearer surface seen
+    # through it 4 columns off the rim's plane (beyond RIM_SNAP_PX): neither moved nor filled
     rng = np.random.default_rng(7)
     kept = ~square | (rng.random(len(px)) < 0.5)
-    wave = np.where(square, rng.uniform(-0.1, 0.1, len(px)), 0.0)[kept]
+    wave = np.where(square, 4.0 + rng.uniform(-0.1, 0.1, len(px)), 0.0)[kept]
     uv1, uv2, X, _ = _slanted(tv, px[kept], wave)
     fill = fill_planes(gray, (W, H), tv, uv1, uv2, X)
-    assert len(fill.moved) == 0 and len(fill.uv1) > 0  # its holes are filled all the same
+    assert len(fill.moved) == 0 and len(fill.uv1) == 0
+    # the same within 0.1 px of the rim's plane: moved onto it, and its holes filled
+    wave = np.where(square, rng.uniform(-0.1, 0.1, len(px)), 0.0)[kept]
+    uv1, uv2, X, true2 = _slanted(tv, px[kept], wave)
+    fill = fill_planes(gray, (W, H), tv, uv1, uv2, X)
+    on_region = square.reshape(H, W)[uv1[:, 1].astype(int), uv1[:, 0].astype(int)]
+    assert len(fill.uv1) > 0 and set(fill.moved) == set(np.flatnonzero(on_region))
+    assert np.abs(fill.moved_uv2 - true2[fill.moved]).max() < 0.05
     # the region's right part unmatched, and its rim there too (a band along an occlusion):
     # only the holes with the plane's matches on all four sides are filled
     open_right = (px[:, 1] >= 118) & (px[:, 1] < 127) & (px[:, 0] >= 83) & (px[:, 0] < 93)

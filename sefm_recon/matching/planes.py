@@ -46,9 +46,9 @@ under it agrees (:func:`_noise_about`: SGM's blotches on a weakly textured floor
 Small plain regions (:func:`_rim_planes`) hold too few matches of their own for a
 plane, but their rim, the intensity edge around them, is texture SGM matches well:
 where the rim's matches lie on one plane, the region's unmatched pixels enclosed by
-them take that plane, and where the region's own matches scatter about a plane (set
-by the smoothness penalties, not by a signal) they move onto the rim's (the checker
-squares of a slanted floor: 1-3 px off, and left unmatched in part).
+them take that plane, and the region's own matches, set by the smoothness penalties
+rather than by a signal, move onto it (the checker squares of a slanted floor: 1-3 px
+off, and left unmatched in part).
 """
 
 from __future__ import annotations
@@ -227,18 +227,13 @@ MIN_RIM_MATCHED = 0.5
 #: rims' matches within 1 px of their plane and 95 % within 2 px, their own matches 32 %
 #: within 1 px of the truth).
 MIN_RIM_SUPPORT = 0.9
-#: The region's own matches within this many px of the rim's plane are on it (SGM's matches on
-#: a slanted plain region lie 1-3 px off, the generated converging floors' checker squares)...
+#: The region's own matches within this many px of the rim's plane are on it and move onto it
+#: (SGM's matches on a slanted plain region lie 1-3 px off, the generated converging floors'
+#: checker squares, often as one fronto-parallel patch: a plane of its own, the wrong one)...
 RIM_SNAP_PX = 3.0
 #: ...and where fewer than this share of them are, the region holds another surface (a hole
 #: showing what lies behind): it is left alone.
 MIN_RIM_INNER = 0.5
-#: The region's matches move onto the rim's plane only where they scatter about their own
-#: best plane by more than this many px (median): SGM's matches on a surface with a signal lie
-#: 0.1-0.36 px from it (the real pairs' small regions, a curved one among them, whose rim's plane
-#: is 0.6 px off its middle), on plain squares of a slanted floor set by the smoothness
-#: penalties 0.48-0.72 px (generated seed 9); 0.4 lies between.
-MIN_RIM_SCATTER = 0.4
 
 
 class PlaneFill(NamedTuple):
@@ -590,13 +585,6 @@ def _rim_plane(pose: _Pose, uv1: np.ndarray, uv2: np.ndarray, z: np.ndarray) -> 
     return _iterated_plane(pose, uv1, uv2, z, np.ones(len(uv1), bool), SNAP_FITS + 1, SNAP_PX, MIN_RIM_SUPPORT)
 
 
-def _scatter(pose: _Pose, uv1: np.ndarray, uv2: np.ndarray, z: np.ndarray) -> float:
-    """Median px of matches (N, 2) at depths ``z`` (N,) from their own least-squares plane
-    (inf for fewer than 8, or matches on one line)."""
-    own = _inverse_depth_plane(uv1, z) if len(uv1) >= 8 else None
-    return np.inf if own is None else float(np.median(_plane_distance(pose, uv1, uv2, own)))
-
-
 def _enclosed(on: np.ndarray) -> np.ndarray:
     """(H, W) bool: the pixels with a True of ``on`` (H, W) bool on each of their four sides
     along their row and column (or on themselves)."""
@@ -612,8 +600,7 @@ def _rim_planes(tv, pose: _Pose, labels: np.ndarray, stats: np.ndarray, uv1: np.
     the plane of their rim's matches (:func:`_rim_plane`): the unmatched pixels of a region
     enclosed along their row and column by matches on the plane (``fill``; a band along an
     occlusion or image 2's border is open on one side) take the plane's partner, and the
-    region's own matches within :data:`RIM_SNAP_PX` of it move onto it where they scatter about
-    their own plane by over :data:`MIN_RIM_SCATTER` (``snap``).
+    region's own matches within :data:`RIM_SNAP_PX` of it move onto it (``snap``).
 
     ``tv`` and ``pose`` (:func:`_pose`) the pair's geometry; ``labels``, ``stats``:
     :func:`plain_regions`; ``uv1``, ``uv2`` (N, 2), ``X`` (N, 3) the matches; ``index``
@@ -647,7 +634,7 @@ def _rim_planes(tv, pose: _Pose, labels: np.ndarray, stats: np.ndarray, uv1: np.
         if len(inner) and np.mean(near) < MIN_RIM_INNER:  # another surface inside
             continue
         own = inner[near]
-        if snap and len(own) and _scatter(pose, uv1[own], uv2[own], X[own, 2]) > MIN_RIM_SCATTER:
+        if snap and len(own):
             moved.append(own)
             planes.append(np.broadcast_to(plane, (len(own), 3)))
         if not fill:
