@@ -1,10 +1,12 @@
 """Plain surfaces filled from their own matches (matching/planes.py), on known answers."""
 
+import cv2
 import numpy as np
 
 from sefm_recon.geometry.triangulate import triangulate
 from sefm_recon.geometry.two_view import TwoView
 from sefm_recon.matching.planes import fill_planes, plain_regions
+from sefm_recon.matching.surfaces import plain_windows
 
 W, H, F = 240, 180, 300.0
 DISP = 12.0  # a frontal plane at depth F / DISP (unit baseline): x2 = x1 - DISP
@@ -302,11 +304,38 @@ def test_a_small_plain_region_takes_the_plane_of_its_rim():
     moved = np.zeros(len(uv1), bool)
     moved[fill.moved] = True
     on_region = square.reshape(H, W)[uv1[:, 1].astype(int), uv1[:, 0].astype(int)]
-    assert moved[on_region].all() and not moved[~on_region].any()  # the region's own, nothing else
+    plain = plain_windows(gray)[uv1[:, 1].astype(int), uv1[:, 0].astype(int)]
+    assert moved[on_region].all() and not moved[~on_region & ~plain].any()  # and of the rim, its plain band alone
     assert np.abs(fill.moved_uv2 - true2[fill.moved]).max() < 0.05
     # switched off: the small region stays as it was
     off = fill_planes(gray, (W, H), tv, uv1, uv2, X, rims=False)
     assert len(off.uv1) == 0 and len(off.moved) == 0
+
+
+def test_a_small_regions_plain_band_outside_every_region_moves_onto_its_rims_plane():
+    """A plain square (its region) inside a plain frame 8 levels brighter, texture beyond: the
+    weak edge between them and the frame, too narrow for a region of its own, are plain windows
+    outside every region. Their matches, 1.5 columns either side of the plane (SGM's wave), move
+    onto the plane of the square's rim where they lie on that rim; the frame beyond the rim and
+    the texture keep theirs."""
+    tv, gray = _scene(5, np.s_[74:102, 104:132])
+    gray[74:102, 104:132] = 136
+    gray[80:96, 110:126] = 128
+    labels, _ = plain_regions(gray)
+    k = labels[88, 118]
+    assert k > 0 and labels[75, 118] == 0  # the square a region, the frame none
+    band = plain_windows(gray) & (labels == 0)
+    rim = cv2.dilate((labels == k).astype(np.uint8), np.ones((7, 7), np.uint8)).astype(bool) & (labels != k)
+    yy, xx = np.mgrid[0:H, 0:W]
+    px = np.column_stack([yy.ravel(), xx.ravel()])
+    side = np.where((px[:, 0] + px[:, 1]) % 2 == 0, 1.5, -1.5)
+    uv1, uv2, X, true2 = _slanted(tv, px, np.where(band.ravel(), side, 0.0))
+    fill = fill_planes(gray, (W, H), tv, uv1, uv2, X)
+    moved = np.zeros(len(uv1), bool)
+    moved[fill.moved] = True
+    assert moved[(band & rim).ravel()].all() and not moved[(band & ~rim).ravel()].any()
+    assert not moved[~plain_windows(gray).ravel()].any()
+    assert np.abs(fill.moved_uv2 - true2[fill.moved]).max() < 0.01  # on the plane of the rim's wave
 
 
 def test_a_rim_whose_matches_scatter_up_to_two_px_about_its_plane_still_gives_it():
@@ -348,7 +377,9 @@ def test_a_small_region_holding_another_surface_open_on_one_side_or_with_a_rim_o
     uv1, uv2, X, true2 = _slanted(tv, px[kept], wave)
     fill = fill_planes(gray, (W, H), tv, uv1, uv2, X)
     on_region = square.reshape(H, W)[uv1[:, 1].astype(int), uv1[:, 0].astype(int)]
-    assert len(fill.uv1) > 0 and set(fill.moved) == set(np.flatnonzero(on_region))
+    plain = plain_windows(gray)[uv1[:, 1].astype(int), uv1[:, 0].astype(int)]
+    assert len(fill.uv1) > 0 and set(np.flatnonzero(on_region)) <= set(fill.moved)
+    assert set(fill.moved) <= set(np.flatnonzero(on_region | plain))
     assert np.abs(fill.moved_uv2 - true2[fill.moved]).max() < 0.05
     # the region's right part unmatched, and its rim there too (a band along an occlusion):
     # only the holes with the plane's matches on all four sides are filled

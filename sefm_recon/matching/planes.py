@@ -48,7 +48,8 @@ plane, but their rim, the intensity edge around them, is texture SGM matches wel
 where the rim's matches lie on one plane, the region's unmatched pixels enclosed by
 them take that plane, and the region's own matches, set by the smoothness penalties
 rather than by a signal, move onto it (the checker squares of a slanted floor: 1-3 px
-off, and left unmatched in part).
+off, and left unmatched in part), with the rim's own plain band between the region and
+its edge.
 """
 
 from __future__ import annotations
@@ -65,6 +66,7 @@ from .lines import LineGrid, match_parallax
 from .plane_align import (AGREE_PX, ALIGNED_ZNCC, FILL_ZNCC, MIN_HALF_PIXELS, NORM_RADIUS, SIGMAS, agreement,
                           align_images, align_plane, halves_agree, normalised)
 from .stereo_sgbm import SPECKLE_SHARE
+from .surfaces import plain_windows
 
 __all__ = ["PlaneFill", "SearchStart", "fill_planes", "plain_regions"]
 
@@ -594,16 +596,19 @@ def _enclosed(on: np.ndarray) -> np.ndarray:
     return (before(on, 1) & before(on[:, ::-1], 1)[:, ::-1] & before(on, 0) & before(on[::-1], 0)[::-1])
 
 
-def _rim_planes(tv, pose: _Pose, labels: np.ndarray, stats: np.ndarray, uv1: np.ndarray, uv2: np.ndarray,
-                X: np.ndarray, index: np.ndarray, size2: tuple[int, int], *, fill: bool, snap: bool):
+def _rim_planes(gray1: np.ndarray, tv, pose: _Pose, labels: np.ndarray, stats: np.ndarray, uv1: np.ndarray,
+                uv2: np.ndarray, X: np.ndarray, index: np.ndarray, size2: tuple[int, int], *, fill: bool, snap: bool):
     """The small plain regions (:data:`MIN_RIM_REGION` px up to :data:`MIN_REGION_SHARE`) on
     the plane of their rim's matches (:func:`_rim_plane`): the unmatched pixels of a region
     enclosed along their row and column by matches on the plane (``fill``; a band along an
     occlusion or image 2's border is open on one side) take the plane's partner, and the
-    region's own matches within :data:`RIM_SNAP_PX` of it move onto it (``snap``).
+    region's own matches within :data:`RIM_SNAP_PX` of it move onto it, and so do the rim's
+    matches on plain windows (:func:`.surfaces.plain_windows`) outside every region: the band
+    between the region and its edge, whose windows hold no more signal than the region's
+    (``snap``).
 
-    ``tv`` and ``pose`` (:func:`_pose`) the pair's geometry; ``labels``, ``stats``:
-    :func:`plain_regions`; ``uv1``, ``uv2`` (N, 2), ``X`` (N, 3) the matches; ``index``
+    ``gray1``: (H, W) uint8 image 1; ``tv`` and ``pose`` (:func:`_pose`) the pair's geometry;
+    ``labels``, ``stats``: :func:`plain_regions`; ``uv1``, ``uv2`` (N, 2), ``X`` (N, 3) the matches; ``index``
     (H, W) the match at each pixel of image 1 (:func:`_region_of_matches`). Returns
     ``(add1, add2, moved, planes)``: lists of the pixels filled (n, 2) and their partners, of
     the indices of the matches moved and their planes (m, 3), one entry a region.
@@ -615,6 +620,7 @@ def _rim_planes(tv, pose: _Pose, labels: np.ndarray, stats: np.ndarray, uv1: np.
     if len(small) == 0 or not (fill or snap):
         return add1, add2, moved, planes
     kernel = np.ones((2 * RIM_PX + 1, 2 * RIM_PX + 1), np.uint8)
+    plain = plain_windows(gray1) if snap else None
     for k in small:
         x0, y0, bw, bh = stats[k, :4]
         xa, ya, xb, yb = max(x0 - RIM_PX, 0), max(y0 - RIM_PX, 0), min(x0 + bw + RIM_PX, w), min(y0 + bh + RIM_PX, h)
@@ -637,6 +643,12 @@ def _rim_planes(tv, pose: _Pose, labels: np.ndarray, stats: np.ndarray, uv1: np.
         if snap and len(own):
             moved.append(own)
             planes.append(np.broadcast_to(plane, (len(own), 3)))
+        if snap:  # the rim's matches without signal, outside every region (its band), are judged alike
+            at = (uv1[ring, 1].astype(np.int64), uv1[ring, 0].astype(np.int64))
+            quiet = ring[plain[at] & (labels[at] == 0)]
+            quiet = quiet[_plane_distance(pose, uv1[quiet], uv2[quiet], plane) <= RIM_SNAP_PX]
+            moved.append(quiet)
+            planes.append(np.broadcast_to(plane, (len(quiet), 3)))
         if not fill:
             continue
         on = np.zeros(region.shape, bool)
@@ -954,7 +966,7 @@ def fill_planes(gray1: np.ndarray, size2: tuple[int, int], tv, uv1: np.ndarray, 
         add1.append(p1[inside])
         add2.append(p2[inside])
     if rims:
-        more = _rim_planes(tv, pose, labels, stats, uv1, uv2, X, index, size2, fill=fill, snap=snap)
+        more = _rim_planes(gray1, tv, pose, labels, stats, uv1, uv2, X, index, size2, fill=fill, snap=snap)
         for into, part in zip((add1, add2, moved, planes), more):
             into.extend(part)
     out = empty
@@ -962,6 +974,9 @@ def fill_planes(gray1: np.ndarray, size2: tuple[int, int], tv, uv1: np.ndarray, 
         out = out._replace(dropped=np.concatenate(dropped))
     if moved:
         m_idx, abc = np.concatenate(moved), np.concatenate(planes)
+        # a pixel of two small regions' rims (the band between them) takes the later one's plane
+        last = len(m_idx) - 1 - np.unique(m_idx[::-1], return_index=True)[1]
+        m_idx, abc = m_idx[last], abc[last]
         m2, mX, ok = _on_plane(tv, uv1[m_idx], abc)
         out = out._replace(moved=m_idx[ok], moved_uv2=m2[ok], moved_xyz=mX[ok])
     if not add1 or sum(map(len, add1)) < MIN_FILL_SHARE * len(uv1):
