@@ -640,15 +640,12 @@ def _rim_planes(gray1: np.ndarray, tv, pose: _Pose, labels: np.ndarray, stats: n
         if len(inner) and np.mean(near) < MIN_RIM_INNER:  # another surface inside
             continue
         own = inner[near]
-        if snap and len(own):
-            moved.append(own)
-            planes.append(np.broadcast_to(plane, (len(own), 3)))
-        if snap:  # the rim's matches without signal, outside every region (its band), are judged alike
+        if snap:  # with the rim's matches without signal outside every region (its band), judged alike
             at = (uv1[ring, 1].astype(np.int64), uv1[ring, 0].astype(np.int64))
             quiet = ring[plain[at] & (labels[at] == 0)]
-            quiet = quiet[_plane_distance(pose, uv1[quiet], uv2[quiet], plane) <= RIM_SNAP_PX]
-            moved.append(quiet)
-            planes.append(np.broadcast_to(plane, (len(quiet), 3)))
+            onto = np.concatenate([own, quiet[_plane_distance(pose, uv1[quiet], uv2[quiet], plane) <= RIM_SNAP_PX]])
+            moved.append(onto)
+            planes.append(np.broadcast_to(plane, (len(onto), 3)))
         if not fill:
             continue
         on = np.zeros(region.shape, bool)
