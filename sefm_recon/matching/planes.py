@@ -63,8 +63,8 @@ from numba import njit
 
 from ..arrays import quiet_windows
 from .lines import LineGrid, match_parallax
-from .plane_align import (AGREE_PX, ALIGNED_ZNCC, FILL_ZNCC, MIN_HALF_PIXELS, NORM_RADIUS, SIGMAS, agreement,
-                          align_images, align_plane, halves_agree, normalised)
+from .plane_align import (AGREE_PX, ALIGNED_ZNCC, FILL_ZNCC, MIN_HALF_PIXELS, NORM_RADIUS, agreement, align_images,
+                          align_plane, halves_agree)
 from .stereo_sgbm import SPECKLE_SHARE
 from .surfaces import plain_windows
 
@@ -661,15 +661,15 @@ def _rim_planes(gray1: np.ndarray, tv, pose: _Pose, labels: np.ndarray, stats: n
     return add1, add2, moved, planes
 
 
-def _nearer_surface(gray1: np.ndarray, norm2: np.ndarray, pose: _Pose, abc: np.ndarray, labels: np.ndarray,
+def _nearer_surface(gray1: np.ndarray, gray2: np.ndarray, pose: _Pose, abc: np.ndarray, labels: np.ndarray,
                     stats: np.ndarray, k: int, uv1: np.ndarray, z: np.ndarray) -> np.ndarray:
     """Which of region ``k``'s matches off its aligned plane ``abc`` (:func:`_inverse_depth_plane`)
     lie on a surface in front of it: nearer than the plane at their pixel, joined (8-neighbours
     in image 1) into a patch of at least :data:`NEARER_SURFACE_SHARE` of image 1's pixels, where
     image 2 under the plane does not match image 1 (the median of :func:`.plane_align.agreement`
     over the patch under :data:`.plane_align.FILL_ZNCC`, the fill's bar: where it does, the
-    plane is what both views see). ``gray1``: (H, W) uint8 image 1; ``norm2``: image 2
-    normalised (:func:`.plane_align.normalised`); ``labels``, ``stats``: :func:`plain_regions`;
+    plane is what both views see). ``gray1``: (H, W) uint8 image 1; ``gray2``: (H2, W2) float32
+    image 2; ``labels``, ``stats``: :func:`plain_regions`;
     ``uv1`` (N, 2) COLMAP positions, ``z`` (N,) their depths; (N,) bool."""
     out = np.zeros(len(uv1), bool)
     nearer = _in_front(uv1, z, abc)
@@ -684,7 +684,7 @@ def _nearer_surface(gray1: np.ndarray, norm2: np.ndarray, pose: _Pose, abc: np.n
         return out
     masks = tuple(patch == j for j in large)
     region = labels[y0:y0 + bh, x0:x0 + bw] == k
-    z_patches = agreement(gray1, norm2, _homography(pose, abc), x0, y0, region, masks)
+    z_patches = agreement(gray1, gray2, _homography(pose, abc), x0, y0, region, masks)
     front = np.zeros(n, bool)
     front[large] = [not _median_over(zz, m) >= FILL_ZNCC for zz, m in zip(z_patches, masks)]
     out[nearer] = front[patch[px[:, 1], px[:, 0]]]
@@ -711,7 +711,7 @@ def _among_plane_matches(labels: np.ndarray, stats: np.ndarray, k: int, on1: np.
     return x0, y0, region > 0, among
 
 
-def _agreeing(gray1: np.ndarray, norm2: np.ndarray, pose: _Pose, abc: np.ndarray, x0: int, y0: int,
+def _agreeing(gray1: np.ndarray, gray2: np.ndarray, pose: _Pose, abc: np.ndarray, x0: int, y0: int,
               region: np.ndarray, among: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Where image 2 warped by a region's aligned plane ``abc`` matches image 1
     (:func:`.plane_align.agreement`; the box at ``(x0, y0)`` of :func:`_among_plane_matches`,
@@ -719,9 +719,9 @@ def _agreeing(gray1: np.ndarray, norm2: np.ndarray, pose: _Pose, abc: np.ndarray
     (not ``among`` them) where it does at least :data:`.plane_align.FILL_ZNCC` over those
     pixels, provided it does so on the pixels among them (their median), and the correlation
     about each pixel over all the region's ((h, w) bool and float32). ``gray1``: the (H, W)
-    uint8 image 1; ``norm2``: image 2 normalised (:func:`.plane_align.normalised`)."""
+    uint8 image 1; ``gray2``: the (H2, W2) float32 image 2."""
     on, beyond = region & among, region & ~among
-    z_on, z_beyond, z_region = agreement(gray1, norm2, _homography(pose, abc), x0, y0, region, (on, beyond, region))
+    z_on, z_beyond, z_region = agreement(gray1, gray2, _homography(pose, abc), x0, y0, region, (on, beyond, region))
     if not _median_over(z_on, on) >= FILL_ZNCC:  # (an alignment image 2 bears out less)
         return np.zeros_like(region), z_region
     return beyond & (z_beyond >= FILL_ZNCC), z_region
@@ -793,7 +793,7 @@ def _noise_about(pose: _Pose, uv1: np.ndarray, uv2: np.ndarray, z_depth: np.ndar
 MAX_ALIGN_PIXELS = 40000
 
 
-def _aligned_surface(gray1: np.ndarray, gray2: np.ndarray, norm2: np.ndarray, pose: _Pose, x0: int, y0: int,
+def _aligned_surface(gray1: np.ndarray, gray2: np.ndarray, pose: _Pose, x0: int, y0: int,
                      region: np.ndarray, among: np.ndarray, abc: np.ndarray,
                      rng: np.random.Generator) -> np.ndarray | None:
     """A region's plane ``abc`` aligned by the images' intensities (:func:`.plane_align.align_plane`)
@@ -801,8 +801,8 @@ def _aligned_surface(gray1: np.ndarray, gray2: np.ndarray, norm2: np.ndarray, po
     box of :func:`_among_plane_matches`), where its halves agree on it
     (:func:`.plane_align.halves_agree`) and image 2 warped by it matches image 1 on those
     pixels (the median of :func:`.plane_align.agreement` at least
-    :data:`.plane_align.ALIGNED_ZNCC`); else None. ``gray1``, ``gray2``: the (H, W) uint8 grey
-    images; ``norm2``: image 2 normalised (:func:`.plane_align.normalised`)."""
+    :data:`.plane_align.ALIGNED_ZNCC`); else None. ``gray1``: the (H, W) uint8 grey image 1;
+    ``gray2``: the (H2, W2) float32 grey image 2."""
     ys, xs = np.nonzero(region & among)
     if len(ys) < 2 * MIN_HALF_PIXELS:  # (matches too sparse for any pixel: no halves to compare)
         return None
@@ -811,13 +811,12 @@ def _aligned_surface(gray1: np.ndarray, gray2: np.ndarray, norm2: np.ndarray, po
         ys, xs = ys[pick], xs[pick]
     px = np.column_stack([xs + x0 + 0.5, ys + y0 + 0.5])
     A, e = pose.K2 @ pose.R @ pose.K1inv, pose.K2 @ pose.t
-    q = np.column_stack([px, np.ones(len(px))]) @ _homography(pose, abc).T
-    images = align_images(gray1, gray2, px, q[:, :2] / q[:, 2:3])
+    images = align_images(gray1, gray2, px)
     aligned = align_plane(images, A, e, px, abc)
     if not halves_agree(images, A, e, px, aligned):
         return None
     on = region & among
-    z_on, = agreement(gray1, norm2, _homography(pose, aligned), x0, y0, region, (on,))
+    z_on, = agreement(gray1, gray2, _homography(pose, aligned), x0, y0, region, (on,))
     return aligned if _median_over(z_on, on) >= ALIGNED_ZNCC else None
 
 
@@ -869,7 +868,7 @@ def fill_planes(gray1: np.ndarray, size2: tuple[int, int], tv, uv1: np.ndarray, 
     pose = _pose(tv)
     quiet = quiet_windows(gray1, SNAP_WINDOW, SNAP_LEVELS) if snap else None
     rng = np.random.default_rng(seed)
-    norm2 = functools.cache(lambda: normalised(gray2, SIGMAS[-1]))  # (for the aligned planes alone)
+    image2 = functools.cache(lambda: gray2.astype(np.float32))  # (for the aligned planes alone)
     add1, add2, moved, planes, dropped = [], [], [], [], []
     for k in big:
         idx = np.flatnonzero(lab == k)
@@ -892,7 +891,7 @@ def fill_planes(gray1: np.ndarray, size2: tuple[int, int], tv, uv1: np.ndarray, 
         if support < MIN_PLANE_SUPPORT and gray2 is not None and (few or fill):
             # too little on one plane for the fill from the matches: the intensities may fix it
             # (a mostly matched region's only for the fill: its matches, SGM's on a surface it found, stay)
-            aligned = _aligned_surface(gray1, gray2, norm2(), pose,
+            aligned = _aligned_surface(gray1, image2(), pose,
                                        *_among_plane_matches(labels, stats, k, uv1[idx[on_plane]]),
                                        abc, np.random.default_rng(seed))  # (the other regions' draws stay)
             if aligned is not None:
@@ -906,7 +905,7 @@ def fill_planes(gray1: np.ndarray, size2: tuple[int, int], tv, uv1: np.ndarray, 
             on_plane = _plane_distance(pose, uv1[idx], uv2[idx], abc) <= RIM_SNAP_PX
             if drop:  # (but a surface in front of the plane stays, off it)
                 off = idx[~on_plane]
-                front = _nearer_surface(gray1, norm2(), pose, abc, labels, stats, k, uv1[off], X[off, 2])
+                front = _nearer_surface(gray1, image2(), pose, abc, labels, stats, k, uv1[off], X[off, 2])
                 dropped.append(off[~front])
                 gone = uv1[off[~front]].astype(np.int64)
                 index[gone[:, 1], gone[:, 0]] = -1
@@ -944,12 +943,12 @@ def fill_planes(gray1: np.ndarray, size2: tuple[int, int], tv, uv1: np.ndarray, 
         ys, xs = np.nonzero(unmatched & among)
         if aligned is None and gray2 is not None and len(ys) >= MIN_FILL_SHARE * len(uv1):
             # the fill's plane aligned where its halves agree (not for a fill too small to keep)
-            aligned = _aligned_surface(gray1, gray2, norm2(), pose, x0, y0, region, among, abc,
+            aligned = _aligned_surface(gray1, image2(), pose, x0, y0, region, among, abc,
                                        np.random.default_rng(seed))  # (the other regions' draws stay)
             if aligned is not None:
                 abc = aligned
         if aligned is not None:  # an aligned plane also beyond its matches, where image 2 under it agrees
-            agree, z = _agreeing(gray1, norm2(), pose, abc, x0, y0, region, among)
+            agree, z = _agreeing(gray1, image2(), pose, abc, x0, y0, region, among)
             ys, xs = np.nonzero(unmatched & (among | agree))
             if snap and not few:  # (a mostly unmatched region's matches near it moved above)
                 near = _noise_about(pose, uv1[idx], uv2[idx], X[idx, 2], abc, x0, y0, region.shape, z)
