@@ -11,9 +11,10 @@ differences between image 1 and image 2 warped by the homography the plane induc
 local normalisation (:func:`normalised`), which takes out the shading and exposure that
 differ between the views; its window (:data:`NORM_RADIUS`) keeps the blotches of a floor's
 texture, which carry its signal. Image 2 is warped into image 1's frame before it is
-blurred and normalised, so that both are filtered over the same part of the plane. The floors of generated seeds 29 and 68, started from the
-planes RANSAC fits to SGM's matches (98.9 % and 73 % of their pixels within 1 px of the
-truth), came within 1 px on 99.9 % and 99.4 %.
+blurred and normalised, so that both are filtered over the same part of the plane. The
+floors of generated seeds 29 and 68, started from the planes RANSAC fits to SGM's matches
+(98.9 % and 73 % of their pixels within 1 px of the truth), came within 1 px on 99.9 % and
+99.4 %.
 
 Whether the plane is a surface at all is judged by the plane alone (:func:`halves_agree`):
 the same alignment on each half of the pixels, split across the rows and across the columns,
@@ -141,12 +142,18 @@ def _sample(image: np.ndarray, xy: np.ndarray) -> np.ndarray:
     return out.ravel()[:n]
 
 
+def _moved(x: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """The derivatives (N, 2) of the points ``x[:, :2] / x[:, 2]`` as the homogeneous points
+    ``x`` (N, 3) move along ``d`` (3,)."""
+    z = x[:, 2:3]
+    return (d[None, :2] * z - x[:, :2] * d[2]) / (z * z)
+
+
 def _partners(A: np.ndarray, e: np.ndarray, p: np.ndarray, abc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The partners (N, 2) the plane ``abc`` gives the pixels ``p`` (N, 3) homogeneous, and
     their derivatives (N, 2) by the inverse depth ``p . abc``; ``q ~ A p + e (p . abc)``."""
     x = p @ A.T + np.outer(p @ abc, e)
-    z = x[:, 2:3]
-    return x[:, :2] / z, (e[None, :2] * z - x[:, :2] * e[2]) / (z * z)
+    return x[:, :2] / x[:, 2:3], _moved(x, e)
 
 
 def _warped(image2: np.ndarray, homography: np.ndarray, origin: np.ndarray, size: tuple[int, int]) -> np.ndarray:
@@ -191,17 +198,14 @@ def align_plane(images: AlignImages, A: np.ndarray, e: np.ndarray, uv1: np.ndarr
             # the warp's Jacobian (d image1 = J^T d image2)
             gx = _sample(cv2.Sobel(two, cv2.CV_32F, 1, 0, ksize=1, scale=0.5), at_box).astype(np.float64)
             gy = _sample(cv2.Sobel(two, cv2.CV_32F, 0, 1, ksize=1, scale=0.5), at_box).astype(np.float64)
-            x = p @ H.T
-            z = x[:, 2]
-            ju = (H[:2, 0][None, :] * z[:, None] - x[:, :2] * H[2, 0]) / (z * z)[:, None]  # d partner / d u
-            jv = (H[:2, 1][None, :] * z[:, None] - x[:, :2] * H[2, 1]) / (z * z)[:, None]  # ... / d v
+            x = p @ H.T  # (the partners, homogeneous)
+            ju, jv, dq = _moved(x, H[:, 0]), _moved(x, H[:, 1]), _moved(x, e)  # d partner / d u, d v, d (p . abc)
             det = ju[:, 0] * jv[:, 1] - jv[:, 0] * ju[:, 1]
             with np.errstate(divide="ignore", invalid="ignore"):
                 g2x = (jv[:, 1] * gx - ju[:, 1] * gy) / det
                 g2y = (-jv[:, 0] * gx + ju[:, 0] * gy) / det
             if not (np.isfinite(g2x).all() and np.isfinite(g2y).all()):
                 return cur
-            dq = _partners(A, e, p, cur)[1]
             # with a gain and offset of image 2's normalised values (least squares): its
             # contrast differs by the views' blur and sampling (0.8-1.0 on the generated floors)
             gain, offset = np.linalg.lstsq(np.column_stack([i2, np.ones_like(i2)]), i1, rcond=None)[0]
