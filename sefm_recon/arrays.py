@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
+from numba import njit
 
 
 def finite_rows(*arrays: np.ndarray) -> np.ndarray:
@@ -41,6 +42,22 @@ def append_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
         out[len(a):] = b
         return out
     return np.concatenate([a, b])
+
+
+@njit(cache=True)
+def _to_front(a, idx):
+    for j in range(len(idx)):  # (idx rises: a row moves forward only, over rows already moved)
+        a[j] = a[idx[j]]
+
+
+def keep_rows(keep: np.ndarray, *arrays: np.ndarray) -> tuple[np.ndarray, ...]:
+    """The rows of each array (N, ...) where ``keep`` (N,) bool holds, moved to its front in
+    place, in order: leading slices of the arrays, so that :func:`append_rows` still writes
+    into the room after them, and no copy of millions of rows in fresh pages."""
+    idx = np.flatnonzero(keep)
+    for a in arrays:
+        _to_front(a, idx)
+    return tuple(a[:len(idx)] for a in arrays)
 
 
 def quiet_windows(gray: np.ndarray, size: int, levels: float) -> np.ndarray:

@@ -88,6 +88,7 @@ SGM_ABLATIONS: dict[str, list[str]] = {
     "- matches of plain regions mostly unmatched and on no one plane dropped": ["sgm.scattered_check=false"],
     "- a plane aligned by the intensities kept there where its halves agree": ["sgm.aligned_planes=false"],
     "- small plain regions on the plane of their rim": ["sgm.rim_planes=false"],
+    "- islands the checks leave under the speckle window dropped": ["sgm.speckle_after=false"],
 }
 
 #: Ablation rows of the sequential DP: each removes (or, marked +, adds) one stage beyond the paper.

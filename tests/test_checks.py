@@ -280,3 +280,30 @@ def test_far_end_surfaces_that_image_2_sees_nowhere_at_every_parallax_are_droppe
     before = disp.copy()
     assert drop_unanchored_far(disp, span2, shift, end, near, -1.0) == rows * 67
     assert (disp[:, :67] == -1.0).all() and (disp[:, 67:] == before[:, 67:]).all()
+
+
+def test_islands_under_the_speckle_window_are_found_and_a_surface_joined_by_a_slope_is_not():
+    """``speckle_islands``: a patch cut off from its surface by unmatched cells and smaller
+    than the speckle window is an island, one across a jump of more than the speckle range
+    too; a surface whose parallax slopes from cell to cell within the range is one patch
+    however far it runs, and a patch of the window's size is none."""
+    from sefm_recon.matching.checks import speckle_islands
+    from sefm_recon.matching.stereo_sgbm import speckle_window
+
+    bad = -1.0
+    rows, width, num_d = 200, 400, 64
+    window = speckle_window(rows, width, num_d)  # 1/500 of the 200 x 336 cells estimated
+    assert window == 134
+    disp = np.full((rows, width), bad, np.float32)
+    disp[:, 100:] = 20.0 + 0.5 * np.arange(300)[None, :] / 10  # a slope of 0.05 columns a cell: one surface
+    disp[10:20, 110:120] = 60.0  # 100 cells 20+ columns off their surroundings: an island
+    disp[50:60, 20:30] = 30.0  # 100 cells cut off by unmatched cells: an island
+    disp[100:112, 20:32] = 30.0  # 144 cells cut off: at the window, no island
+    disp[150:160, 40:50] = 30.0  # two patches of 100 within the range of each other: one of 200
+    disp[150:160, 50:60] = 31.5
+    before = disp.copy()
+    islands = speckle_islands(disp, num_d, bad)
+    assert np.array_equal(disp, before)  # the map is not changed
+    expected = np.zeros_like(islands)
+    expected[10:20, 110:120] = expected[50:60, 20:30] = True
+    assert np.array_equal(islands, expected)

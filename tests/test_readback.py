@@ -28,7 +28,9 @@ def test_disparities_read_back_at_every_pixel_lie_on_its_epipolar_line(monkeypat
     # two surfaces side by side in the line images, and a hole the matcher left
     disp = np.where(np.arange(width)[None, :] < grid.pad + grid.columns // 2, near, far)
     disp[100:120, :] = -1.0
-    uv1, uv2, X, rows = pixel_matches(disp, 0.0, grid, tv, (320, 240), (320, 240))
+    uv1, uv2, X, cells = pixel_matches(disp, 0.0, grid, tv, (320, 240), (320, 240))
+    rows = cells // width
+    assert np.all(disp.ravel()[cells] >= 0)  # each match's nearest cell: a valid one
     assert len(uv1) > 0.75 * 320 * 240 and np.all(np.mod(uv1, 1.0) == 0.5)  # pixel centres, most of them
     assert len(np.unique(uv1, axis=0)) == len(uv1)  # one match a pixel
     # each match is the projection of a point on one of the two planes, never between them
@@ -55,7 +57,7 @@ def test_disparities_read_back_at_every_pixel_lie_on_its_epipolar_line(monkeypat
 
     monkeypatch.setattr(readback, "_CHUNK_PIXELS", 7 * 320 + 5)
     chunked = pixel_matches(disp, 0.0, grid, tv, (320, 240), (320, 240))
-    for a, b in zip(chunked, (uv1, uv2, X, rows)):
+    for a, b in zip(chunked, (uv1, uv2, X, cells)):
         assert np.array_equal(a, b)
 
 

@@ -45,6 +45,23 @@ def test_points_appended_into_the_room_left_after_them():
     np.testing.assert_array_equal(append_rows(plain, plain[:1]), np.r_[plain, plain[:1]])
 
 
+def test_kept_rows_move_to_the_front_in_place_and_still_take_appended_rows():
+    """``keep_rows`` keeps the rows in order at the front of the arrays it is given (the
+    read-back's leading slices), so that ``append_rows`` still writes after them."""
+    from sefm_recon.arrays import append_rows, keep_rows
+
+    rng = np.random.default_rng(3)
+    X = rng.normal(size=(50, 3))
+    Xh, rows = np.empty((60, 3))[:50], np.empty(60, np.int64)[:50]
+    Xh[:], rows[:] = X, np.arange(50)
+    keep = rng.random(50) < 0.6
+    kh, kr = keep_rows(keep, Xh, rows)
+    np.testing.assert_array_equal(kh, X[keep])
+    np.testing.assert_array_equal(kr, np.flatnonzero(keep))
+    assert np.shares_memory(kh, Xh) and kh.ctypes.data == Xh.ctypes.data
+    assert np.shares_memory(append_rows(kh, X[:5]), Xh)
+
+
 def test_points_behind_a_camera_are_invalid():
     K = np.array([[500.0, 0, 320], [0, 500, 240], [0, 0, 1]])
     R, t = np.eye(3), np.array([-1.0, 0, 0])

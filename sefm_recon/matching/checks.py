@@ -7,7 +7,8 @@ nearer surface's cell at depth edges (:func:`drop_fattened_cells`), two surfaces
 pixel of image 2 (:func:`drop_collisions`), far end estimates image 2 does not see
 (:func:`drop_unseen_far`, :func:`drop_unanchored_far`), runs that match image 1's edge to
 image 2's (:func:`drop_frame_end_runs`), and plain cells a nearer surface carries across an
-occlusion or a depth jump (:func:`drop_occluded_plain`, :func:`drop_carried_plain`).
+occlusion or a depth jump (:func:`drop_occluded_plain`, :func:`drop_carried_plain`); and the
+islands these checks leave under the speckle filter's window (:func:`speckle_islands`).
 ``disp`` is (rows, width) float32 parallax in columns, image 2's line image shifted by
 ``shift`` (a cell ``x`` of parallax ``d`` matches ``x - (d - shift)``), invalid at or below
 ``invalid``.
@@ -21,12 +22,32 @@ import cv2
 import numpy as np
 from numba import njit, prange
 
-from .stereo_sgbm import BLOCK, LR_MAX_DIFF
+from .stereo_sgbm import BLOCK, LR_MAX_DIFF, SPECKLE_RANGE, speckle_window
 from .surfaces import MEDIAN_SAME_SURFACE, PLAIN_LEVELS, SAME_SURFACE_COLUMNS, anchored_cells, surface_forest
 
 __all__ = ["drop_carried_plain", "drop_collisions", "drop_fattened_cells", "drop_flat_windows", "drop_frame_end_runs",
            "drop_occluded_plain", "drop_outside_windows", "drop_range_ends", "drop_unanchored_far", "drop_unseen_far",
-           "flat_windows"]
+           "flat_windows", "speckle_islands"]
+
+
+def speckle_islands(disp: np.ndarray, num_d: int, invalid: float, share: float | None = None) -> np.ndarray:
+    """(rows, width) bool: the valid cells of ``disp`` in patches of one surface (4-neighbours
+    within :data:`.stereo_sgbm.SPECKLE_RANGE` columns) smaller than the speckle filter's window
+    for a search over ``num_d`` columns (:func:`.stereo_sgbm.speckle_window`, ``share``):
+    OpenCV's speckle test, asked again of what the checks leave.
+
+    OpenCV's filter judges SGM's own map; the checks after it drop cells from the patches it
+    kept, and the plain fits and medians move others, so that a patch's remains can lie cut
+    off from every other cell of its surface, as small as the islands the filter drops and
+    as often a wrong minimum.
+    """
+    valid = disp > invalid
+    # OpenCV's filter takes 16-bit disparities: parallax above ``invalid`` in 1/scale columns
+    # (1/16 as SGM's own output, coarser only where the search's columns would not fit)
+    scale = min(16.0, 32000.0 / max(float(np.max(disp, initial=invalid) - invalid), 1.0))
+    fixed = np.where(valid, np.maximum(np.round((disp - invalid) * scale), 1.0), 0.0).astype(np.int16)
+    cv2.filterSpeckles(fixed, 0, speckle_window(*disp.shape, num_d, share), SPECKLE_RANGE * scale)
+    return valid & (fixed == 0)
 
 
 def drop_range_ends(disp: np.ndarray, lo: int, hi: int, invalid: float) -> int:

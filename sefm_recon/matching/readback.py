@@ -38,13 +38,13 @@ class GridScalars(NamedTuple):
 
 
 @njit(parallel=True, cache=True)
-def _read_back(disp, xs, reach, joined, g, basis, K1inv, P2, baseline, w1, y0, w2, h2, uv2, X, row):
+def _read_back(disp, xs, reach, joined, g, basis, K1inv, P2, baseline, w1, y0, w2, h2, uv2, X, cell):
     """For pixel ``i`` of image 1 (column ``i % w1``, row ``y0 + i // w1``): its ray's
     ``(phi, alpha)``, the disparity of the line images at its fractional row and
     column, interpolated over the neighbours on the nearest cell's surface, the
     position in image 2 of the ray at that parallax in the pixel's own half-plane, and
     the scene point where the two rays meet. Writes ``uv2`` (N, 2), ``X`` (N, 3) (camera
-    1's frame) and ``row`` (N,) (-1: no match).
+    1's frame) and ``cell`` (N,), the nearest cell's flat index in ``disp`` (-1: no match).
 
     Both rays lie in the half-plane: the point lies at ``baseline * sin(alpha2) /
     sin(alpha2 - alpha1)`` along the pixel's ray (the law of sines in the triangle of
@@ -58,7 +58,7 @@ def _read_back(disp, xs, reach, joined, g, basis, K1inv, P2, baseline, w1, y0, w
     ``K1inv`` (3, 3) maps pixels to rays; ``P2`` (3, 3) = ``K2 R`` projects
     camera-1-axes rays into image 2.
     """
-    n = row.shape[0]
+    n = cell.shape[0]
     H, W = disp.shape
     two_pi = 2.0 * np.pi
     last = H - 1
@@ -70,7 +70,7 @@ def _read_back(disp, xs, reach, joined, g, basis, K1inv, P2, baseline, w1, y0, w
     t_lo = np.tan(0.5 * g.edge)
     t_hi = 1.0 / t_lo
     for i in prange(n):
-        row[i] = -1
+        cell[i] = -1
         r0, r1, r2 = pixel_ray(K1inv, i % w1 + 0.5, y0 + i // w1 + 0.5)
         rb = r0 * basis[0, 0] + r1 * basis[0, 1] + r2 * basis[0, 2]
         ra = r0 * basis[1, 0] + r1 * basis[1, 1] + r2 * basis[1, 2]
@@ -151,28 +151,28 @@ def _read_back(disp, xs, reach, joined, g, basis, K1inv, P2, baseline, w1, y0, w
         X[i, 0] = r0 * s
         X[i, 1] = r1 * s
         X[i, 2] = r2 * s
-        row[i] = rn
+        cell[i] = rn * W + cn
 
 
 @njit(parallel=True, cache=True)
-def _compact(uv2, X, row, w, y0, out1, out2, out_X, out_r, m0):
-    """The matched pixels of a chunk (``row >= 0``) in pixel order, packed into ``out1``,
-    ``out2`` (M, 2), ``out_X`` (M, 3) and ``out_r`` (M,) from index ``m0``: one parallel
+def _compact(uv2, X, cell, w, y0, out1, out2, out_X, out_c, m0):
+    """The matched pixels of a chunk (``cell >= 0``) in pixel order, packed into ``out1``,
+    ``out2`` (M, 2), ``out_X`` (M, 3) and ``out_c`` (M,) from index ``m0``: one parallel
     pass per image row (counting, then writing at each row's offset). Returns the index
     after the last."""
-    nrows = row.shape[0] // w
+    nrows = cell.shape[0] // w
     count = np.zeros(nrows + 1, np.int64)
     for r in prange(nrows):
         c = 0
         for j in range(r * w, (r + 1) * w):
-            if row[j] >= 0:
+            if cell[j] >= 0:
                 c += 1
         count[r + 1] = c
     start = np.cumsum(count) + m0
     for r in prange(nrows):
         m = start[r]
         for j in range(r * w, (r + 1) * w):
-            if row[j] >= 0:
+            if cell[j] >= 0:
                 out1[m, 0] = j - r * w + 0.5
                 out1[m, 1] = y0 + r + 0.5
                 out2[m, 0] = uv2[j, 0]
@@ -180,7 +180,7 @@ def _compact(uv2, X, row, w, y0, out1, out2, out_X, out_r, m0):
                 out_X[m, 0] = X[j, 0]
                 out_X[m, 1] = X[j, 1]
                 out_X[m, 2] = X[j, 2]
-                out_r[m] = row[j]
+                out_c[m] = cell[j]
                 m += 1
     return start[-1]
 
@@ -197,10 +197,11 @@ def pixel_matches(disp: np.ndarray, min_disparity: float, grid: LineGrid, tv: Tw
     pixel's epipolar line. Pixels nearer an epipole than ``grid.edge``, whose nearest cell
     is invalid, or whose match leaves image 2 get none.
 
-    Returns ``(uv1, uv2, X, rows)``: (N, 2) COLMAP positions, (N, 3) their scene points
-    (camera 1's frame, in front of both cameras) and (N,) rows of the line images, each
-    the leading slice of an array of one row a pixel of image 1 (the room after it takes
-    matches appended later without a copy, :func:`sefm_recon.arrays.append_rows`).
+    Returns ``(uv1, uv2, X, cells)``: (N, 2) COLMAP positions, (N, 3) their scene points
+    (camera 1's frame, in front of both cameras) and (N,) int64 the flat index in ``disp``
+    of each match's nearest cell (its line image row ``cells // width``), each the leading
+    slice of an array of one row a pixel of image 1 (the room after it takes matches
+    appended later without a copy, :func:`sefm_recon.arrays.append_rows`).
     """
     xs = np.ascontiguousarray(grid.phi - grid.phi[0], np.float64)
     reach = np.ascontiguousarray(grid.reach, np.float64)
@@ -214,16 +215,16 @@ def pixel_matches(disp: np.ndarray, min_disparity: float, grid: LineGrid, tv: Tw
     rows_per_chunk = max(1, _CHUNK_PIXELS // w)
     # numpy's outputs, one match a pixel at most, filled chunk by chunk and cut at the end
     # (arrays of numba's or a concatenation cost their size in fresh pages twice over)
-    out1, out2, out_r = np.empty((w * h, 2)), np.empty((w * h, 2)), np.empty(w * h, np.int64)
+    out1, out2, out_c = np.empty((w * h, 2)), np.empty((w * h, 2)), np.empty(w * h, np.int64)
     out_X = np.empty((w * h, 3))
     uv2 = np.empty((min(h, rows_per_chunk) * w, 2))
     X = np.empty((min(h, rows_per_chunk) * w, 3))
-    row = np.empty(min(h, rows_per_chunk) * w, np.int64)
+    cell = np.empty(min(h, rows_per_chunk) * w, np.int64)
     baseline = float(np.linalg.norm(tv.t))
     m = 0
     for y0 in range(0, h, rows_per_chunk):
         n = w * (min(h, y0 + rows_per_chunk) - y0)
         _read_back(disp, xs, reach, joined, g, basis, K1inv, P2, baseline, w, y0, float(size2[0]), float(size2[1]),
-                   uv2[:n], X[:n], row[:n])
-        m = _compact(uv2[:n], X[:n], row[:n], w, y0, out1, out2, out_X, out_r, m)
-    return out1[:m], out2[:m], out_X[:m], out_r[:m]
+                   uv2[:n], X[:n], cell[:n])
+        m = _compact(uv2[:n], X[:n], cell[:n], w, y0, out1, out2, out_X, out_c, m)
+    return out1[:m], out2[:m], out_X[:m], out_c[:m]

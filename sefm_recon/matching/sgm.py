@@ -30,14 +30,14 @@ import cv2
 import numpy as np
 from numba import njit, prange
 
-from ..arrays import append_rows
+from ..arrays import append_rows, keep_rows
 from ..config import Config
 from ..errors import InputError
 from ..geometry.two_view import TwoView
 from ..io.images import to_gray
 from .checks import (drop_carried_plain, drop_collisions, drop_fattened_cells, drop_flat_windows, drop_frame_end_runs,
                      drop_occluded_plain, drop_outside_windows, drop_range_ends, drop_unanchored_far, drop_unseen_far,
-                     flat_windows)
+                     flat_windows, speckle_islands)
 from .lines import LineGrid, line_grid, line_images, match_parallax, pixel_grid
 from .periodic import drop_repeating, repeat_score
 from .planes import SearchStart, fill_planes
@@ -840,13 +840,20 @@ def match_pair_sgm(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config,
     n_wide = fit_wide_planes(disp, plain, gray1, gray2, min_d, min_d - 1.0) if opt.wide_fit else 0
     del plain, gray1, gray2, repeat
     n_dense = int(np.count_nonzero(disp >= min_d))
+    # judged here, dropped after the plane fill: a plain region's islands are part of what
+    # SGM found there, for its verdict, and one moved onto the region's plane is the plane's
+    islands = speckle_islands(disp, num_d, min_d - 1.0, speckle_share_for(opt)) if opt.speckle_after else None
     if repeats is not None:  # (read back before the matches, so that their pixel-sized arrays are not held at once)
         repeats = tuple(a.copy() for a in pixel_matches(repeats, min_d, grid, tv, size1, size2, opt.interpolate)[:2])
     # leading slices of pixel-sized arrays, so that the plane fill's matches (unmatched
     # pixels of image 1) append without copying the millions found (a few tenths of a
     # second on 2000x1500)
-    uv1, uv2, X, rows = pixel_matches(disp, min_d, grid, tv, size1, size2, opt.interpolate)
+    uv1, uv2, X, rows = pixel_matches(disp, min_d, grid, tv, size1, size2, opt.interpolate)  # (rows: cells yet)
+    width = disp.shape[1]
     del disp
+    drop = islands.ravel()[rows] if islands is not None else np.zeros(len(uv1), bool)
+    rows //= width  # (in place: a leading slice still)
+    del islands
     n_sgm = len(uv1)
     n_planes = n_moved = n_scattered = 0
     if opt.planes or opt.plane_snap or opt.scattered_check:
@@ -857,11 +864,13 @@ def match_pair_sgm(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config,
         n_planes, n_moved, n_scattered = len(pf.uv1), len(pf.moved), len(pf.dropped)
         uv2[pf.moved] = pf.moved_uv2
         X[pf.moved] = pf.moved_xyz
-        if n_scattered:  # (none of them moved: a region's moves are of matches on its plane)
-            keep = np.ones(n_sgm, bool)
-            keep[pf.dropped] = False
-            uv1, uv2, X, rows = uv1[keep], uv2[keep], X[keep], rows[keep]
-            n_sgm = len(uv1)
+        drop[pf.moved] = False
+        drop[pf.dropped] = True  # (none of them moved: a region's moves are of matches on its plane)
+    n_islands = int(np.count_nonzero(drop)) - n_scattered
+    if n_islands or n_scattered:
+        uv1, uv2, X, rows = keep_rows(~drop, uv1, uv2, X, rows)
+        n_sgm = len(uv1)
+    del drop
     if n_planes:
         # no line of the line images (-1), and a lower confidence than a match SGM found
         uv1, uv2, X = append_rows(uv1, pf.uv1), append_rows(uv2, pf.uv2), append_rows(X, pf.xyz)
@@ -887,9 +896,9 @@ def match_pair_sgm(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config,
                 "and %d fattened at depth edges dropped), %d on plain windows fitted to their surface's plane "
                 "and %d moved onto a wider window's plane, %d filled on plain planes and %d moved onto them, %d on "
                 "plain regions mostly unmatched and on no one plane (or off theirs on no second one, or on the ties at the "
-                "search's first parallax) dropped, %d valid",
+                "search's first parallax) dropped, %d in islands under the speckle filter's window dropped, %d valid",
                 "4 full paths" if full else "3 directions", counts["line_pairs"], n_dense, n_half, n_off, n_lr, n_ends,
                 n_flat, n_out, n_col, n_occ, n_car, n_far, n_near, n_coarse, n_rep, n_frame, n_fat, n_fit, n_wide,
-                n_planes, n_moved, n_scattered, len(uv1))
+                n_planes, n_moved, n_scattered, n_islands, len(uv1))
     return DenseMatches(uv1, uv2, score, rows, X, counts, timings)
 
