@@ -848,12 +848,11 @@ def match_pair_sgm(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config,
     # leading slices of pixel-sized arrays, so that the plane fill's matches (unmatched
     # pixels of image 1) append without copying the millions found (a few tenths of a
     # second on 2000x1500)
-    uv1, uv2, X, rows = pixel_matches(disp, min_d, grid, tv, size1, size2, opt.interpolate)  # (rows: cells yet)
-    width = disp.shape[1]
-    del disp
-    drop = islands.ravel()[rows] if islands is not None else np.zeros(len(uv1), bool)
-    rows //= width  # (in place: a leading slice still)
-    del islands
+    uv1, uv2, X, cells = pixel_matches(disp, min_d, grid, tv, size1, size2, opt.interpolate)
+    drop = islands.ravel()[cells] if islands is not None else np.zeros(len(uv1), bool)
+    rows = cells  # each match's row of the line images, in place (a leading slice still)
+    rows //= disp.shape[1]
+    del disp, islands, cells
     n_sgm = len(uv1)
     n_planes = n_moved = n_scattered = 0
     if opt.planes or opt.plane_snap or opt.scattered_check:
