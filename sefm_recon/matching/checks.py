@@ -45,7 +45,11 @@ def speckle_islands(disp: np.ndarray, num_d: int, invalid: float, share: float |
     # OpenCV's filter takes 16-bit disparities: parallax above ``invalid`` in 1/scale columns
     # (1/16 as SGM's own output, coarser only where the search's columns would not fit)
     scale = min(16.0, 32000.0 / max(float(np.max(disp, initial=invalid) - invalid), 1.0))
-    fixed = np.where(valid, np.maximum(np.round((disp - invalid) * scale), 1.0), 0.0).astype(np.int16)
+    fixed = disp - np.float32(invalid)  # (one float32 copy, worked on in place)
+    fixed *= scale
+    np.maximum(np.round(fixed, out=fixed), 1.0, out=fixed)
+    fixed[~valid] = 0.0
+    fixed = fixed.astype(np.int16)
     cv2.filterSpeckles(fixed, 0, speckle_window(*disp.shape, num_d, share), SPECKLE_RANGE * scale)
     return valid & (fixed == 0)
 
