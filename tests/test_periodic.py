@@ -40,6 +40,39 @@ def test_stripes_repeat_at_every_period_tried_and_a_random_texture_does_not():
     np.testing.assert_array_equal(plain, given)  # (the image given is left as it was)
 
 
+def test_stripes_repeat_up_to_the_rows_end():
+    """A window near the row's right end, whose copies ahead run out of the row before the
+    stripes come back, is scored on its copies behind: it repeats like the others."""
+    rng = np.random.default_rng(5)
+    cols = 400
+    # a period found at full size, at the first halving and at the second (their windows and
+    # shifts 1, 2 and 4 times as wide): the windows within the row at the level that finds it,
+    # whose copies ahead reach past the row's end before a period
+    for period, step in ((9, 1), (3 * LEVEL_SHIFTS // 2, 2), (3 * LEVEL_SHIFTS, 4)):
+        score = repeat_score(_stripes(64, cols, period, rng), 4 * LEVEL_SHIFTS)
+        end = score[4:-4, cols - step * (WINDOW_HALF + LEVEL_SHIFTS):cols - step * (WINDOW_HALF + 1)]
+        assert (end >= REPEAT_ZNCC).mean() > 0.95, period
+
+
+def test_a_striped_patch_at_the_rows_end_is_dropped():
+    """Stripes matched a period off up to the row's end (unseen seed 204's floor at image 1's
+    edge): the windows at the patch's end, scored on their copies behind, repeat and anchor
+    nothing."""
+    rng = np.random.default_rng(6)
+    rows, cols = 40, 400
+    gray = _strong_texture(rows, cols, rng)
+    # a period of 14 columns: the copies ahead of the last 14 windows run out of the row before
+    # it, over a tenth of the patch (ANCHOR_SHARE), as many as the windows beside the texture
+    gray[:, 250:] = _stripes(rows, 150, 14, rng)
+    disp = np.full((rows, cols), -1.0, np.float32)
+    disp[:, :240] = 40.0  # the textured surface, a jump (no estimates) before the stripes
+    disp[:, 250:] = 29.0  # the stripes, to the row's end
+    out = disp.copy()
+    drop_repeating(out, repeat_score(gray, 64), -1.0)
+    assert (out[:, 270:cols - WINDOW_HALF] == -1.0).mean() > 0.95
+    assert (out[:, :240] == 40.0).all()
+
+
 def _colour(grey, chroma):
     """RGB (rows, cols, 3) uint8 of ``grey`` plus ``chroma`` times a red-green axis of no grey value."""
     axis = np.array([1.0, -0.299 / 0.587, 0.0])  # (0.299 r + 0.587 g = 0)

@@ -12,7 +12,13 @@ Each cell of line image 1 gets a repeat score (:func:`repeat_score`): the highes
 its window with the window ``s`` columns further along its row, over the shifts after the
 ZNCC first fell to :data:`DIP_ZNCC` (a second peak of the autocorrelation, not the flank of
 the first), tried over a pyramid up to the search's width (:data:`LEVEL_SHIFTS` shifts a
-level). An estimate on a window that repeats (:data:`REPEAT_ZNCC`) is dropped where its
+level). Where those copies ahead reach past image 1's edge within the shifts, the copies
+behind are scored too: the stripes cannot come back beyond the image, and scored ahead
+alone, the windows at the end of unseen seed 204's striped floor, at image 1's edge,
+counted as texture that does not repeat and anchored a patch of it matched a period off.
+(Everywhere both ways, a striped box face lost the windows at its edge, whose copies ahead
+take in what lies beyond the stripes: that is texture that does not repeat, and it placed
+the face.) An estimate on a window that repeats (:data:`REPEAT_ZNCC`) is dropped where its
 surface (cells joined along and across rows within :data:`.surfaces.SAME_SURFACE_COLUMNS`)
 holds fewer than :data:`ANCHOR_SHARE` of cells on windows with texture that does not repeat
 (below :data:`ONCE_ZNCC`) and that lie on it (within image 1, the cells at both ends of the
@@ -104,11 +110,13 @@ MOSTLY_REPEATING = 0.5
 
 
 @njit(parallel=True, cache=True)
-def _score_level(g, smin, smax, half, rows_w, min_var, dip):
+def _score_level(g, smin, smax, half, rows_w, min_var, dip, last):
     """One level of :func:`repeat_score` of ``g`` (channels, rows, width) float32 over the
     shifts ``smin``..``smax``: (rows, width) float32, the best ZNCC after the dip (the
-    channels' covariances and variances summed), -1 where none, -2 where the window is plain or
-    reaches beyond the row. Computed at every :data:`STRIDE`-th row and column, each value
+    channels' covariances and variances summed) with the copy ahead or, past the column
+    whose copies ahead reach ``last[r]`` (each row's last column within the image), after its
+    own dip, the copy behind; -1 where none, -2 where the window is plain or reaches beyond
+    the row. Computed at every :data:`STRIDE`-th row and column, each value
     standing for the cells up to the next (a window of 5 x 25 cells moves by a row or a
     column of it)."""
     nc, rows, width = g.shape
@@ -148,6 +156,13 @@ def _score_level(g, smin, smax, half, rows_w, min_var, dip):
             out[r:min(r + STRIDE, rows)] = -2.0
             continue
         dipped = np.zeros(width, np.bool_)
+        # the windows past column `ahead` have copies ahead that reach beyond image 1's frame (or
+        # the row) before the level's last shift: they are also scored on their copies behind,
+        # from the first computed column past it
+        ahead = min(last[r], width - 1) - half - min(smax, width - 1)
+        first_back = half if ahead < half else half + ((ahead - half) // STRIDE + 1) * STRIDE
+        dipped_l = np.zeros(width, np.bool_)  # (as `dipped`, the copies behind)
+        best_l = np.full(width, -1.0)
         cp = np.zeros(width + 1)
         colp = np.zeros(width, np.float32)
         mm = np.zeros(width)
@@ -165,7 +180,7 @@ def _score_level(g, smin, smax, half, rows_w, min_var, dip):
             mm[:] = 0.0
             for c in range(nc):
                 mc = mean[c]
-                for x in range(half, width - half - s, STRIDE):
+                for x in range(half, width - half - s):
                     mm[x] += mc[x] * mc[x + s]
             for x in range(half, width - half - s, STRIDE):
                 if inv[x] == 0.0 or inv[x + s] == 0.0:
@@ -175,37 +190,52 @@ def _score_level(g, smin, smax, half, rows_w, min_var, dip):
                     dipped[x] = True
                 elif dipped[x] and s >= smin and z > best[x]:
                     best[x] = z
+            # the window at y against its copy s columns back (the ZNCC of the windows at y - s and y)
+            for y in range(max(first_back, half + -(-s // STRIDE) * STRIDE), width - half, STRIDE):
+                x = y - s
+                if inv[x] == 0.0 or inv[y] == 0.0:
+                    continue
+                z = ((cp[x + half + 1] - cp[x - half]) / n - mm[x]) * inv[x] * inv[y]
+                if z <= dip:
+                    dipped_l[y] = True
+                elif dipped_l[y] and s >= smin and z > best_l[y]:
+                    best_l[y] = z
         for x in range(width):
             xs = x - (x - half) % STRIDE if x >= half else -1  # the computed column standing for x
             if xs < 0 or x >= width - half or inv[xs] == 0.0:
                 v = -2.0
             else:
-                v = best[xs]
+                v = max(best[xs], best_l[xs])  # (best_l is -1 up to `ahead`)
             for rr in range(r, min(r + STRIDE, rows)):
                 out[rr, x] = v
     return out
 
 
-def repeat_score(image: np.ndarray, shifts: int) -> np.ndarray:
+def repeat_score(image: np.ndarray, shifts: int, last: np.ndarray | None = None) -> np.ndarray:
     """How strongly each cell's window of ``image`` (rows, width) grey or (rows, width, 3) RGB
     repeats along its row within ``shifts`` columns: (rows, width) float32, the best ZNCC
     (:data:`WINDOW_ROWS` x 2 :data:`WINDOW_HALF` + 1 windows) at a shift after the ZNCC first
-    fell to :data:`DIP_ZNCC`; -1 where it never came back, -2 where the window is plain (below
+    fell to :data:`DIP_ZNCC`, of its copies ahead and, where those reach past ``last`` ((rows,)
+    int64, each row's last column within image 1; default the row's end) within the shifts,
+    of its copies behind too; -1 where it never came back, -2 where the window is plain (below
     :data:`MIN_VARIANCE`) or reaches beyond the row. Shifts beyond :data:`LEVEL_SHIFTS` are
     tried on halved copies (INTER_AREA), their scores read back at the nearest cell. Of a
     colour image, the higher of its grey values' score and its chroma's (:data:`_CHROMA`,
     plain below :data:`MIN_CHROMA_VARIANCE`): -2 where both are plain."""
-    if image.ndim == 2:
-        return _repeat_score(np.array(image, np.float32)[None], shifts, MIN_VARIANCE)  # (a copy: centred in place)
     h, w = image.shape[:2]
-    score = _repeat_score(to_gray(image).astype(np.float32)[None], shifts, MIN_VARIANCE)
+    last = np.full(h, w - 1, np.int64) if last is None else np.asarray(last, np.int64)
+    if image.ndim == 2:
+        # (a copy: centred in place)
+        return _repeat_score(np.array(image, np.float32)[None], shifts, MIN_VARIANCE, last)
+    score = _repeat_score(to_gray(image).astype(np.float32)[None], shifts, MIN_VARIANCE, last)
     chroma = (image.reshape(h * w, 3).astype(np.float32) @ _CHROMA_ROWS.T).T.reshape(2, h, w)
-    return np.maximum(score, _repeat_score(chroma, shifts, MIN_CHROMA_VARIANCE), out=score)
+    return np.maximum(score, _repeat_score(chroma, shifts, MIN_CHROMA_VARIANCE, last), out=score)
 
 
-def _repeat_score(level: np.ndarray, shifts: int, min_var: float) -> np.ndarray:
+def _repeat_score(level: np.ndarray, shifts: int, min_var: float, last: np.ndarray) -> np.ndarray:
     """:func:`repeat_score` of the channels ``level`` (channels, rows, width) float32 together
-    (centred here, in place), a window plain where their variances sum to less than ``min_var``."""
+    (centred here, in place), a window plain where their variances sum to less than ``min_var``;
+    ``last`` (rows,) int64 each row's last column within image 1."""
     _, h, w = level.shape
     # about each channel's mean (centred, the float32 products' sums over a window keep the
     # digits a ZNCC needs): half float64's memory; its time on the bench pair was the same
@@ -216,7 +246,9 @@ def _repeat_score(level: np.ndarray, shifts: int, min_var: float) -> np.ndarray:
     step, smin = 1, 1
     while True:
         smax = min(LEVEL_SHIFTS, -(-shifts // step))  # (a repeat beyond the search misleads no match)
-        s = _score_level(np.ascontiguousarray(level), smin, smax, WINDOW_HALF, WINDOW_ROWS, min_var, DIP_ZNCC)
+        # each reduced row's last column within image 1: that of the rows it averages, the least
+        ends = np.minimum.reduceat(last, np.arange(0, h, step)) // step
+        s = _score_level(np.ascontiguousarray(level), smin, smax, WINDOW_HALF, WINDOW_ROWS, min_var, DIP_ZNCC, ends)
         if score is None:
             score = s
         else:  # the nearest cell's score where higher; a window plain at full size stays plain

@@ -810,7 +810,7 @@ def match_pair_sgm(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config,
     n_out = drop_outside_windows(disp, span2, min_d, min_d - 1.0) if opt.outside_check else 0
     n_col = drop_collisions(disp, L1, L2, min_d, min_d - 1.0) if opt.collision_check else 0
     gray1 = to_gray(L1)  # once, for the plain windows and the wide fit
-    repeat = repeat_score(L1, num_d) if opt.repeat_check else None  # (of the colours SGM matched)
+    repeat = repeat_score(L1, num_d, frames[0][:, 1]) if opt.repeat_check else None  # (of the colours SGM matched)
     plain = plain_windows(gray1) if opt.plain_fit or opt.wide_fit or opt.occlusion_check or opt.carried_check else None
     n_occ = drop_occluded_plain(disp, L1, plain, span2, min_d, min_d - 1.0) if opt.occlusion_check else 0
     n_car = drop_carried_plain(disp, L1, plain, min_d - 1.0) if opt.carried_check else 0
