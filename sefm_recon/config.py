@@ -287,6 +287,9 @@ class SgmConfig:
     #: drop the islands the checks leave under the speckle filter's window (but those moved onto
     #: a plain region's plane), after the plane fill (:func:`.matching.checks.speckle_islands`)
     speckle_after: bool = True
+    #: move the matches over 3 px off the scene's largest planes, aligned by the intensities,
+    #: onto them where image 2 under the plane agrees better (:mod:`.matching.dominant`)
+    dominant_planes: bool = True
 
 
 @dataclass

@@ -38,7 +38,7 @@ from typing import NamedTuple
 import cv2
 import numpy as np
 
-__all__ = ["AlignImages", "agreement", "align_images", "align_plane", "halves_agree", "normalised"]
+__all__ = ["AlignImages", "agreement", "align_images", "align_plane", "halves_agree", "masked_zncc", "normalised"]
 
 #: Gaussian blurs (px) of the levels the plane is aligned on, coarse to fine: at 4 px the
 #: warp's linearisation holds over the 1-3 px the fitted plane is off; below 2 px the sensor
@@ -268,22 +268,26 @@ def agreement(gray1: np.ndarray, gray2: np.ndarray, homography: np.ndarray, x0: 
     m = MARGIN
     two = normalised(_warped(gray2, homography, np.array([x0 - m, y0 - m]), (w + 2 * m, h + 2 * m)),
                      SIGMAS[-1])[m:m + h, m:m + w]
+    return [masked_zncc(one, two, mask) for mask in masks]
+
+
+def masked_zncc(one: np.ndarray, two: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """The ZNCC of ``one`` and ``two`` (h, w) float32 over the pixels of ``mask`` (h, w) bool in
+    the normalisation's window (:data:`NORM_RADIUS`) about each pixel: (h, w) float32, NaN
+    where they are under half the window."""
     win = (2 * NORM_RADIUS + 1, 2 * NORM_RADIUS + 1)
 
     def total(a):
         return cv2.boxFilter(a, -1, win, normalize=False, borderType=cv2.BORDER_CONSTANT)
 
-    out = []
-    for mask in masks:
-        m = mask.astype(np.float32)
-        a, b = one * m, two * m
-        n = total(m)
-        k = np.maximum(n, 1.0)
-        sa, sb = total(a), total(b)
-        cov = total(a * b) - sa * sb / k
-        va = total(a * a) - sa * sa / k
-        vb = total(b * b) - sb * sb / k
-        z = cov / np.sqrt(np.maximum(va * vb, 1e-12))
-        z[n < 0.5 * win[0] * win[1]] = np.nan
-        out.append(z)
-    return out
+    m = mask.astype(np.float32)
+    a, b = one * m, two * m
+    n = total(m)
+    k = np.maximum(n, 1.0)
+    sa, sb = total(a), total(b)
+    cov = total(a * b) - sa * sb / k
+    va = total(a * a) - sa * sa / k
+    vb = total(b * b) - sb * sb / k
+    z = cov / np.sqrt(np.maximum(va * vb, 1e-12))
+    z[n < 0.5 * win[0] * win[1]] = np.nan
+    return z

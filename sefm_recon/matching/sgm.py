@@ -38,6 +38,7 @@ from ..io.images import to_gray
 from .checks import (drop_carried_plain, drop_collisions, drop_fattened_cells, drop_flat_windows, drop_frame_end_runs,
                      drop_occluded_plain, drop_outside_windows, drop_range_ends, drop_unanchored_far, drop_unseen_far,
                      flat_windows, speckle_islands)
+from .dominant import move_onto_dominant_planes
 from .lines import LineGrid, line_grid, line_images, match_parallax, pixel_grid
 from .periodic import drop_repeating, repeat_score
 from .planes import SearchStart, fill_planes
@@ -874,6 +875,11 @@ def match_pair_sgm(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config,
         # no line of the line images (-1), and a lower confidence than a match SGM found
         uv1, uv2, X = append_rows(uv1, pf.uv1), append_rows(uv2, pf.uv2), append_rows(X, pf.xyz)
         rows = append_rows(rows, np.full(n_planes, -1, rows.dtype))
+    n_dominant = 0
+    if opt.dominant_planes:
+        dm = move_onto_dominant_planes(to_gray(img1), to_gray(img2), tv, uv1, uv2, X)
+        uv2[dm.moved], X[dm.moved] = dm.uv2, dm.xyz
+        n_dominant = len(dm.moved)
     score = np.ones(len(uv1))
     score[n_sgm:] = PLANE_SCORE
     timings["matching"] = time.perf_counter() - t0
@@ -895,9 +901,10 @@ def match_pair_sgm(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config,
                 "and %d fattened at depth edges dropped), %d on plain windows fitted to their surface's plane "
                 "and %d moved onto a wider window's plane, %d filled on plain planes and %d moved onto them, %d on "
                 "plain regions mostly unmatched and on no one plane (or off theirs on no second one, or on the ties at the "
-                "search's first parallax) dropped, %d in islands under the speckle filter's window dropped, %d valid",
+                "search's first parallax) dropped, %d in islands under the speckle filter's window dropped, %d moved "
+                "onto the largest aligned planes, %d valid",
                 "4 full paths" if full else "3 directions", counts["line_pairs"], n_dense, n_half, n_off, n_lr, n_ends,
                 n_flat, n_out, n_col, n_occ, n_car, n_far, n_near, n_coarse, n_rep, n_frame, n_fat, n_fit, n_wide,
-                n_planes, n_moved, n_scattered, n_islands, len(uv1))
+                n_planes, n_moved, n_scattered, n_islands, n_dominant, len(uv1))
     return DenseMatches(uv1, uv2, score, rows, X, counts, timings)
 
