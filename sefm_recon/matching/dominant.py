@@ -36,7 +36,7 @@ import numpy as np
 
 from .plane_align import (ALIGNED_ZNCC, FILL_ZNCC, NORM_RADIUS, SIGMAS, _sample, agreement, align_images, align_plane,
                           halves_agree, masked_zncc)
-from .planes import MAX_ALIGN_PIXELS, _homography, _inverse_depth_plane, _on_plane, _pose
+from .planes import MAX_ALIGN_PIXELS, _homography, _inverse_depth_plane, _median_over, _on_plane, _pose
 from .stereo_sgbm import BLOCK, SPECKLE_SHARE
 
 __all__ = ["DominantMoves", "move_onto_dominant_planes"]
@@ -146,7 +146,7 @@ def _eligible_areas(gray1: np.ndarray, gray2: np.ndarray, tv, uv1: np.ndarray, u
         mine = np.zeros((h, w), bool)
         mine[px[on, 1], px[on, 0]] = True
         z_all, z_mine = agreement(gray1, g2, _homography(pose, abc), 0, 0, whole, (whole, mine))
-        if not np.nanmedian(z_mine[mine]) >= ALIGNED_ZNCC:
+        if not _median_over(z_mine, mine) >= ALIGNED_ZNCC:
             continue
         agree = cv2.erode(((z_all >= FILL_ZNCC) & ~flat).astype(np.uint8), erode)
         n, labels = cv2.connectedComponents(agree, connectivity=4)
