@@ -108,3 +108,20 @@ def test_without_a_plane_of_enough_matches_nothing_moves():
     got = move_onto_dominant_planes(one, two, TV, uv1[:5], uv2[:5], X[:5])
     assert got.planes == 0 and len(got.moved) == 0
 
+
+
+def test_a_view_over_the_alignment_size_is_judged_reduced_and_moved_at_its_own_size(monkeypatch):
+    """Judged on copies reduced to half (the alignment size set to 160 px for the test's 320 px),
+    the patch a period off still moves, its partners from the plane in the full-size pixels."""
+    from sefm_recon.matching import dominant
+
+    monkeypatch.setattr(dominant, "ALIGN_SIDE", W // 2)
+    one, two, parallax = _scene(box=False)
+    wrong = _patch()
+    uv1, uv2, X, truth = _matches(parallax, wrong)
+    got = dominant.move_onto_dominant_planes(one, two, TV, uv1, uv2, X)
+    bad = wrong[uv1[:, 1].astype(int), uv1[:, 0].astype(int)]
+    assert set(got.moved) <= set(np.flatnonzero(bad))
+    assert len(got.moved) >= 0.9 * bad.sum()
+    expected = uv1[got.moved] - np.column_stack([truth[got.moved], np.zeros(len(got.moved))])
+    assert np.abs(got.uv2 - expected).max() < 0.2

@@ -1,4 +1,4 @@
-"""The scene's largest planes aligned by the intensities, and the matches a period off them moved onto them, an addition beyond the paper.
+"""Matches a period off the scene's largest planes, aligned by the intensities, moved onto them (beyond the paper).
 
 On texture that repeats along the lines (stripes) SGM's cost has a minimum at every period,
 and a patch of a striped surface can settle a whole period off (generated seed 294's
