@@ -50,11 +50,11 @@ def _scene(box: bool):
     return _uint8(one, 1), _uint8(two, 2), parallax
 
 
-def _matches(parallax, wrong, margin=24, hole=None):
-    """Every pixel's true match (COLMAP positions) but a period farther where ``wrong`` (H, W),
-    none where ``hole`` (H, W); and their points (camera 1's frame) and true parallax."""
+def _matches(parallax, wrong, margin=24):
+    """Every pixel's true match (COLMAP positions) but a period farther where ``wrong`` (H, W);
+    and their points (camera 1's frame) and true parallax."""
     ys, xs = np.mgrid[margin:H - margin, margin:W - margin]
-    ok = np.isfinite(parallax[ys, xs]) & (True if hole is None else ~hole[ys, xs])
+    ok = np.isfinite(parallax[ys, xs])
     ys, xs = ys[ok], xs[ok]
     d = parallax[ys, xs] + np.where(wrong[ys, xs], PERIOD, 0)
     uv1 = np.column_stack([xs + 0.5, ys + 0.5]).astype(np.float64)
@@ -107,7 +107,6 @@ def test_without_a_plane_of_enough_matches_nothing_moves():
     uv1, uv2, X, _ = _matches(parallax, _patch())
     got = move_onto_dominant_planes(one, two, TV, uv1[:5], uv2[:5], X[:5])
     assert got.planes == 0 and len(got.moved) == 0
-
 
 
 def test_a_view_over_the_alignment_size_is_judged_reduced_and_moved_at_its_own_size(monkeypatch):

@@ -34,10 +34,11 @@ from typing import NamedTuple
 import cv2
 import numpy as np
 
+from .checks import flat_windows
 from .plane_align import (ALIGNED_ZNCC, FILL_ZNCC, NORM_RADIUS, SIGMAS, _sample, agreement, align_images, align_plane,
                           halves_agree, masked_zncc)
 from .planes import MAX_ALIGN_PIXELS, _homography, _inverse_depth_plane, _median_over, _on_plane, _pose
-from .stereo_sgbm import BLOCK, SPECKLE_SHARE
+from .stereo_sgbm import SPECKLE_SHARE
 
 __all__ = ["DominantMoves", "move_onto_dominant_planes"]
 
@@ -133,7 +134,7 @@ def _eligible_areas(gray1: np.ndarray, gray2: np.ndarray, tv, uv1: np.ndarray, u
     # conv: 812 right matches beside it moved 3 px and more off). The generated scenes' specks
     # of one value (0.1-1 % of the pixels in 5x5 windows of one value, :func:`.checks.flat_windows`)
     # are none: eroded by the window they took 7-17 % of the view.
-    flat = (cv2.morphologyEx(gray1, cv2.MORPH_GRADIENT, np.ones((BLOCK, BLOCK), np.uint8)) == 0).astype(np.uint8)
+    flat = flat_windows(gray1).astype(np.uint8)
     n, labels, stats, _ = cv2.connectedComponentsWithStats(flat, connectivity=8)
     flat = (stats[:, cv2.CC_STAT_AREA] >= erode.size)[labels] & (flat > 0)
     for on in _largest_planes(uv1, uv2, rng):

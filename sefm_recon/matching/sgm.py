@@ -856,11 +856,12 @@ def match_pair_sgm(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config,
     del disp, islands, cells
     n_sgm = len(uv1)
     n_planes = n_moved = n_scattered = 0
+    image1_gray, image2_gray = to_gray(img1), to_gray(img2)  # (for the plane fill and the dominant planes)
     if opt.planes or opt.plane_snap or opt.scattered_check:
-        pf = fill_planes(to_gray(img1), size2, tv, uv1, uv2, X, fill=opt.planes, snap=opt.plane_snap,
+        pf = fill_planes(image1_gray, size2, tv, uv1, uv2, X, fill=opt.planes, snap=opt.plane_snap,
                          drop=opt.scattered_check, rims=opt.rim_planes, repeats=repeats,
                          start=SearchStart(grid, float(min_d)) if opt.scattered_check else None,
-                         gray2=to_gray(img2) if opt.aligned_planes else None)
+                         gray2=image2_gray if opt.aligned_planes else None)
         n_planes, n_moved, n_scattered = len(pf.uv1), len(pf.moved), len(pf.dropped)
         uv2[pf.moved] = pf.moved_uv2
         X[pf.moved] = pf.moved_xyz
@@ -877,7 +878,7 @@ def match_pair_sgm(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config,
         rows = append_rows(rows, np.full(n_planes, -1, rows.dtype))
     n_dominant = 0
     if opt.dominant_planes:
-        dm = move_onto_dominant_planes(to_gray(img1), to_gray(img2), tv, uv1, uv2, X)
+        dm = move_onto_dominant_planes(image1_gray, image2_gray, tv, uv1, uv2, X)
         uv2[dm.moved], X[dm.moved] = dm.uv2, dm.xyz
         n_dominant = len(dm.moved)
     score = np.ones(len(uv1))
