@@ -124,3 +124,19 @@ def test_a_view_over_the_alignment_size_is_judged_reduced_and_moved_at_its_own_s
     assert len(got.moved) >= 0.9 * bad.sum()
     expected = uv1[got.moved] - np.column_stack([truth[got.moved], np.zeros(len(got.moved))])
     assert np.abs(got.uv2 - expected).max() < 0.2
+
+
+def test_reduced_pixels_are_each_matchs_pixel_and_the_first_match_in_each():
+    """A match's pixel of an image reduced by 0.3 (its position scaled and truncated, clipped to
+    the reduced image) and the first match in each pixel, in the pixels' order: numpy's
+    ``unique`` of those pixels (its first indices)."""
+    from sefm_recon.matching.dominant import _reduced_pixels
+
+    rng = np.random.default_rng(3)
+    uv1 = rng.uniform(0, 1, (5000, 2)) * [320.0, 240.0]
+    uv1[0] = [319.99, 239.99]  # (scaled onto the reduced image's last pixel: clipped there)
+    w, h = 96, 72
+    pixel, first = _reduced_pixels(uv1, 0.3, w, h)
+    xy = np.minimum((uv1 * 0.3).astype(np.int64), [w - 1, h - 1])
+    assert np.array_equal(pixel, xy[:, 1] * w + xy[:, 0])
+    assert np.array_equal(first, np.unique(pixel, return_index=True)[1])

@@ -33,10 +33,11 @@ from typing import NamedTuple
 
 import cv2
 import numpy as np
+from numba import njit
 
 from .checks import flat_windows
 from .plane_align import (ALIGNED_ZNCC, FILL_ZNCC, NORM_RADIUS, SIGMAS, _sample, agreement, align_images, align_plane,
-                          halves_agree, masked_zncc)
+                          halves_agree, masked_zncc, normalised_region)
 from .planes import MAX_ALIGN_PIXELS, _homography, _inverse_depth_plane, _median_over, _on_plane, _pose
 from .stereo_sgbm import SPECKLE_SHARE
 
@@ -129,6 +130,7 @@ def _eligible_areas(gray1: np.ndarray, gray2: np.ndarray, tv, uv1: np.ndarray, u
     own = None  # (computed once, when a plane is kept)
     erode = np.ones((2 * NORM_RADIUS + 1, 2 * NORM_RADIUS + 1), np.uint8)
     whole = np.ones((h, w), bool)
+    normed1 = normalised_region(gray1, 0, 0, whole)  # (image 1 as every plane's agreement compares it)
     # areas of one value of at least a window (a turned image's fill): their edge is no edge
     # of the scene, and correlates with image 2's own under a wrong plane (real pair Wood2
     # conv: 812 right matches beside it moved 3 px and more off). The generated scenes' specks
@@ -146,7 +148,7 @@ def _eligible_areas(gray1: np.ndarray, gray2: np.ndarray, tv, uv1: np.ndarray, u
         abc = align_plane(images, A, e, sample, abc)
         mine = np.zeros((h, w), bool)
         mine[px[on, 1], px[on, 0]] = True
-        z_all, z_mine = agreement(gray1, g2, _homography(pose, abc), 0, 0, whole, (whole, mine))
+        z_all, z_mine = agreement(gray1, g2, _homography(pose, abc), 0, 0, whole, (whole, mine), image1=normed1)
         if not _median_over(z_mine, mine) >= ALIGNED_ZNCC:
             continue
         agree = cv2.erode(((z_all >= FILL_ZNCC) & ~flat).astype(np.uint8), erode)
@@ -158,11 +160,32 @@ def _eligible_areas(gray1: np.ndarray, gray2: np.ndarray, tv, uv1: np.ndarray, u
             blurred = (cv2.GaussianBlur(gray1.astype(np.float32), (0, 0), SIGMAS[-1]),
                        cv2.GaussianBlur(g2, (0, 0), SIGMAS[-1]))
             own = _window_agreement(*blurred, index, uv2)
-        q = cv2.perspectiveTransform(uv1.reshape(-1, 1, 2), _homography(pose, abc)).reshape(-1, 2)
-        off = np.zeros((h, w), bool)
-        off[px[:, 1], px[:, 0]] = np.linalg.norm(q - uv2, axis=1) > off_px
+        # the matches there over off_px off the plane (measured at those pixels alone)
+        ys, xs = np.nonzero(reached[labels] & (z_all > own) & (index >= 0))
+        at = index[ys, xs]
+        eligible = np.zeros((h, w), bool)
+        if len(at):  # (OpenCV returns no array for no points)
+            q = cv2.perspectiveTransform(uv1[at].reshape(-1, 1, 2), _homography(pose, abc)).reshape(-1, 2)
+            off = np.linalg.norm(q - uv2[at], axis=1) > off_px
+            eligible[ys[off], xs[off]] = True
         # (the halves test, four more alignments, asked only where matches would move)
-        yield abc, reached[labels] & (z_all > own) & off, partial(halves_agree, images, A, e, sample, abc)
+        yield abc, eligible, partial(halves_agree, images, A, e, sample, abc)
+
+
+@njit(cache=True)
+def _reduced_pixels(uv1, f, w, h):
+    """Each match's pixel of the image reduced by ``f`` to ``w`` x ``h`` (row-major index; the
+    matches ``uv1`` (N, 2) COLMAP positions scaled and truncated) and the first match in each
+    pixel that holds one, in the pixels' order: (N,) and (M,) int64."""
+    n = uv1.shape[0]
+    pixel = np.empty(n, np.int64)
+    first = np.full(w * h, -1, np.int64)
+    for i in range(n):
+        k = min(int(uv1[i, 1] * f), h - 1) * w + min(int(uv1[i, 0] * f), w - 1)
+        pixel[i] = k
+        if first[k] < 0:
+            first[k] = i
+    return pixel, first[first >= 0]
 
 
 def move_onto_dominant_planes(gray1: np.ndarray, gray2: np.ndarray, tv, uv1: np.ndarray, uv2: np.ndarray,
@@ -187,18 +210,19 @@ def move_onto_dominant_planes(gray1: np.ndarray, gray2: np.ndarray, tv, uv1: np.
         small2 = cv2.resize(gray2, size2, interpolation=cv2.INTER_AREA)
         S = np.diag([f, f, 1.0])  # (COLMAP positions scale about the corner)
         small_tv = SimpleNamespace(K1=S @ tv.K1, K2=S @ tv.K2, R=tv.R, t=tv.t)
-        at = np.minimum((uv1 * f).astype(np.int64), [size1[0] - 1, size1[1] - 1])
-        one = np.unique(at[:, 1] * size1[0] + at[:, 0], return_index=True)[1]  # (a match a reduced pixel)
+        at, one = _reduced_pixels(np.ascontiguousarray(uv1, np.float64), f, *size1)  # (a match a reduced pixel)
         areas = _eligible_areas(small1, small2, small_tv, uv1[one] * f, uv2[one] * f, X[one, 2], rng, MOVE_PX * f)
     else:
-        at = px
+        at = px[:, 1] * w + px[:, 0]
         areas = _eligible_areas(gray1, gray2, tv, uv1, uv2, X[:, 2], rng, MOVE_PX)
     moved = np.zeros(len(uv1), bool)
     to_idx, to_uv2, to_xyz, kept = [], [], [], 0
     min_patch = max(MIN_PATCH_SHARE * h * w, (2 * NORM_RADIUS + 1) ** 2 / (f * f))
     for abc, eligible, halves in areas:
+        if not eligible.any():  # (no match to look up)
+            continue
         abc = abc * np.array([f, f, 1.0])  # (the plane in the matches' own pixels)
-        cand = np.flatnonzero(eligible[at[:, 1], at[:, 0]] & ~moved)
+        cand = np.flatnonzero(eligible.ravel()[at] & ~moved)
         new2, newX, ok = _on_plane(tv, uv1[cand], abc)
         go = ok & (np.linalg.norm(new2 - uv2[cand], axis=1) > MOVE_PX)
         cand, new2, newX = cand[go], new2[go], newX[go]

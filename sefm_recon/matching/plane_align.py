@@ -38,7 +38,8 @@ from typing import NamedTuple
 import cv2
 import numpy as np
 
-__all__ = ["AlignImages", "agreement", "align_images", "align_plane", "halves_agree", "masked_zncc", "normalised"]
+__all__ = ["AlignImages", "agreement", "align_images", "align_plane", "halves_agree", "masked_zncc", "normalised",
+           "normalised_region"]
 
 #: Gaussian blurs (px) of the levels the plane is aligned on, coarse to fine: at 4 px the
 #: warp's linearisation holds over the 1-3 px the fitted plane is off; below 2 px the sensor
@@ -252,8 +253,16 @@ def _normalised_within(gray: np.ndarray, mask: np.ndarray, sigma: float) -> np.n
     return (b - mean) / np.sqrt(np.maximum(var, 0.0) + NOISE_VARIANCE)
 
 
+def normalised_region(gray1: np.ndarray, x0: int, y0: int, region: np.ndarray) -> np.ndarray:
+    """Image 1 (``gray1``, (H, W) uint8) as :func:`agreement` compares it: over ``region`` (h, w)
+    bool, whose top-left pixel is ``(x0, y0)``, at the finer blur of :data:`SIGMAS`
+    (:func:`_normalised_within`); (h, w) float32."""
+    h, w = region.shape
+    return _normalised_within(gray1[y0:y0 + h, x0:x0 + w], region, SIGMAS[-1])
+
+
 def agreement(gray1: np.ndarray, gray2: np.ndarray, homography: np.ndarray, x0: int, y0: int,
-              region: np.ndarray, masks: tuple) -> list:
+              region: np.ndarray, masks: tuple, *, image1: np.ndarray | None = None) -> list:
     """How well image 2 warped by a plane's ``homography`` (3, 3: COLMAP positions of image 1 to
     image 2's) matches image 1 about the pixels of each of ``masks`` ((h, w) bool, the top-left
     pixel ``(x0, y0)`` of image 1, within ``region``, (h, w) bool): one (h, w) float32 a mask,
@@ -262,9 +271,11 @@ def agreement(gray1: np.ndarray, gray2: np.ndarray, homography: np.ndarray, x0: 
     :data:`SIGMAS` and normalised in image 1's frame (as :func:`align_plane` compares them):
     image 1 within ``region`` alone (:func:`_normalised_within`: a halo of the edge around it
     would correlate with image 2's wherever the plane puts it), image 2 warped over the region's
-    box and :data:`MARGIN` px about it. ``gray1``: (H, W) uint8; ``gray2``: (H2, W2) float32."""
+    box and :data:`MARGIN` px about it. ``gray1``: (H, W) uint8; ``gray2``: (H2, W2) float32;
+    ``image1``: image 1 so normalised already (:func:`normalised_region`), where several planes
+    are compared over one region."""
     h, w = region.shape
-    one = _normalised_within(gray1[y0:y0 + h, x0:x0 + w], region, SIGMAS[-1])
+    one = normalised_region(gray1, x0, y0, region) if image1 is None else image1
     m = MARGIN
     two = normalised(_warped(gray2, homography, np.array([x0 - m, y0 - m]), (w + 2 * m, h + 2 * m)),
                      SIGMAS[-1])[m:m + h, m:m + w]
