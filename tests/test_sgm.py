@@ -657,6 +657,8 @@ def test_estimates_at_the_near_end_stay_only_where_the_coarse_pass_found_a_surfa
 
 
 def test_estimates_far_from_the_coarse_pass_are_dropped_only_where_it_is_sure():
+    """Sure: the 3x3 coarse cells about the place all estimated, on textured windows that do
+    not repeat along the lines at that scale, within a coarse column of each other."""
     from sefm_recon.matching.sgm import COARSE_CHECK_COLUMNS, COARSE_CHECK_MARGIN, CoarseParallax, drop_off_coarse
 
     _, _, tv, _ = _lateral_pair()
@@ -667,6 +669,8 @@ def test_estimates_far_from_the_coarse_pass_are_dropped_only_where_it_is_sure():
     textured = np.ones((rows, cols), bool)
     coarse[:, 40:50] = np.nan  # ... with a band the coarse pass left without an estimate
     textured[:, 60:70] = False  # and a plain one (its estimates are ties)
+    once = np.ones((rows, cols), bool)
+    once[:, 70:78] = False  # and stripes at the coarse scale (its estimate may be a period off too)
     disp = np.full((rows, cols), 30.0, np.float32)
     disp[:, 10:20] = 30.0 + tol + 2.0  # a patch a period off: dropped
     disp[:, 22:26] = 30.0 + tol - 0.5  # within the tolerance: kept
@@ -674,9 +678,10 @@ def test_estimates_far_from_the_coarse_pass_are_dropped_only_where_it_is_sure():
     disp[:, 50] = 50.0
     disp[:, 37] = 50.0  # one cell further the square is whole again: dropped
     disp[:, 61:69] = 50.0  # off, on the plain band: not sure either
+    disp[:, 71:77] = 50.0  # off, on the stripes: not sure either
     disp[0, 0] = -1.0  # invalid stays so
     before = disp.copy()
-    n = drop_off_coarse(disp, grid, CoarseParallax(coarse, textured, step, grid), -1.0)
+    n = drop_off_coarse(disp, grid, CoarseParallax(coarse, textured, step, grid, once=once), -1.0)
     assert (disp[:, 10:20] == -1.0).all() and (disp[:, 37] == -1.0).all()
     keep = np.ones(cols, bool)
     keep[10:20] = keep[37] = False
