@@ -346,3 +346,25 @@ def test_an_object_in_front_of_an_aligned_floor_keeps_its_matches():
     gone[:] = False
     gone[fill_planes(floor_only, (W, H), TV, uv1, uv2, X, gray2=two).dropped] = True
     assert gone[on_box].all()
+
+
+def test_gradient_along_depth_is_the_warped_gradient_through_the_jacobian():
+    """Image 2's gradient along the partners' move by depth: the warped image's gradient through
+    the inverse of the warp's Jacobian, dotted with the partner's derivative by depth (written
+    out with the derivatives of the dehomogenised partners), and not finite for a singular warp."""
+    from sefm_recon.matching.plane_align import _gradient_along_depth, _moved
+
+    rng = np.random.default_rng(1)
+    H = np.eye(3) + 0.05 * rng.normal(size=(3, 3))
+    e = np.array([12.0, -3.0, 0.02])
+    p = np.column_stack([rng.uniform(0, 300, (50, 2)), np.ones(50)])
+    gx, gy = rng.normal(size=50), rng.normal(size=50)
+    x = p @ H.T
+    ju, jv, dq = _moved(x, H[:, 0]), _moved(x, H[:, 1]), _moved(x, e)
+    g2 = np.linalg.solve(np.stack([ju, jv], axis=1), np.column_stack([gx, gy])[:, :, None])[:, :, 0]
+    got, ok = _gradient_along_depth(x, H[:, 0].copy(), H[:, 1].copy(), e, gx, gy)
+    assert ok
+    assert np.allclose(got, np.sum(g2 * dq, axis=1), rtol=1e-9, atol=1e-12)
+    flat = H.copy()
+    flat[:, 1] = flat[:, 0]  # (u and v move the partner alike: no inverse)
+    assert not _gradient_along_depth(p @ flat.T, flat[:, 0].copy(), flat[:, 1].copy(), e, gx, gy)[1]

@@ -37,6 +37,7 @@ from typing import NamedTuple
 
 import cv2
 import numpy as np
+from numba import njit
 
 __all__ = ["AlignImages", "agreement", "align_images", "align_plane", "halves_agree", "masked_zncc", "normalised",
            "normalised_region"]
@@ -150,6 +151,31 @@ def _moved(x: np.ndarray, d: np.ndarray) -> np.ndarray:
     return (d[None, :2] * z - x[:, :2] * d[2]) / (z * z)
 
 
+@njit(cache=True)
+def _gradient_along_depth(x, hu, hv, e, gx, gy):
+    """Image 2's gradient at the partners ``x`` (N, 3) homogeneous (``H p``) along their move by
+    the inverse depth ``p . abc``: the warped image's gradient ``gx``, ``gy`` (N,) float64 (image 1's
+    frame) through the inverse of the warp's Jacobian (``d image1 = J^T d image2``; the
+    partner's derivatives by u and v along ``hu``, ``hv``, the first two columns of ``H``),
+    dotted with the partner's derivative along ``e`` (:func:`_moved`, each). (N,) float64, and
+    whether every value is finite (a singular warp, a partner at infinity: not)."""
+    n = x.shape[0]
+    out = np.empty(n)
+    for i in range(n):
+        z = x[i, 2]
+        zz = z * z
+        ju0, ju1 = (hu[0] * z - x[i, 0] * hu[2]) / zz, (hu[1] * z - x[i, 1] * hu[2]) / zz
+        jv0, jv1 = (hv[0] * z - x[i, 0] * hv[2]) / zz, (hv[1] * z - x[i, 1] * hv[2]) / zz
+        dq0, dq1 = (e[0] * z - x[i, 0] * e[2]) / zz, (e[1] * z - x[i, 1] * e[2]) / zz
+        det = ju0 * jv1 - jv0 * ju1
+        g2x = (jv1 * gx[i] - ju1 * gy[i]) / det if det != 0.0 else np.inf
+        g2y = (-jv0 * gx[i] + ju0 * gy[i]) / det if det != 0.0 else np.inf
+        if not (np.isfinite(g2x) and np.isfinite(g2y)):
+            return out, False
+        out[i] = g2x * dq0 + g2y * dq1
+    return out, True
+
+
 def _partners(A: np.ndarray, e: np.ndarray, p: np.ndarray, abc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The partners (N, 2) the plane ``abc`` gives the pixels ``p`` (N, 3) homogeneous, and
     their derivatives (N, 2) by the inverse depth ``p . abc``; ``q ~ A p + e (p . abc)``."""
@@ -199,19 +225,14 @@ def align_plane(images: AlignImages, A: np.ndarray, e: np.ndarray, uv1: np.ndarr
             # the warp's Jacobian (d image1 = J^T d image2)
             gx = _sample(cv2.Sobel(two, cv2.CV_32F, 1, 0, ksize=1, scale=0.5), at_box).astype(np.float64)
             gy = _sample(cv2.Sobel(two, cv2.CV_32F, 0, 1, ksize=1, scale=0.5), at_box).astype(np.float64)
-            x = p @ H.T  # (the partners, homogeneous)
-            ju, jv, dq = _moved(x, H[:, 0]), _moved(x, H[:, 1]), _moved(x, e)  # d partner / d u, d v, d (p . abc)
-            det = ju[:, 0] * jv[:, 1] - jv[:, 0] * ju[:, 1]
-            with np.errstate(divide="ignore", invalid="ignore"):
-                g2x = (jv[:, 1] * gx - ju[:, 1] * gy) / det
-                g2y = (-jv[:, 0] * gx + ju[:, 0] * gy) / det
-            if not (np.isfinite(g2x).all() and np.isfinite(g2y).all()):
+            along, ok = _gradient_along_depth(p @ H.T, H[:, 0].copy(), H[:, 1].copy(), e, gx, gy)
+            if not ok:
                 return cur
             # with a gain and offset of image 2's normalised values (least squares): its
             # contrast differs by the views' blur and sampling (0.8-1.0 on the generated floors)
             gain, offset = np.linalg.lstsq(np.column_stack([i2, np.ones_like(i2)]), i1, rcond=None)[0]
             r = (gain * i2 + offset - i1).astype(np.float64)
-            J = (gain * (g2x * dq[:, 0] + g2y * dq[:, 1]))[:, None] * (p / scale)
+            J = (gain * along)[:, None] * (p / scale)
             k = HUBER * 1.4826 * max(float(np.median(np.abs(r))), 1e-6)
             w = np.minimum(1.0, k / np.maximum(np.abs(r), 1e-12))
             JW = J * w[:, None]
