@@ -146,9 +146,10 @@ def _eligible_areas(gray1: np.ndarray, gray2: np.ndarray, tv, uv1: np.ndarray, u
         sample = uv1[np.sort(rng.choice(on, min(len(on), MAX_ALIGN_PIXELS), replace=False))]
         images = align_images(gray1, g2, sample)
         abc = align_plane(images, A, e, sample, abc)
+        H = _homography(pose, abc)
         mine = np.zeros((h, w), bool)
         mine[px[on, 1], px[on, 0]] = True
-        z_all, z_mine = agreement(gray1, g2, _homography(pose, abc), 0, 0, whole, (whole, mine), image1=normed1)
+        z_all, z_mine = agreement(gray1, g2, H, 0, 0, whole, (whole, mine), image1=normed1)
         if not _median_over(z_mine, mine) >= ALIGNED_ZNCC:
             continue
         agree = cv2.erode(((z_all >= FILL_ZNCC) & ~flat).astype(np.uint8), erode)
@@ -165,7 +166,7 @@ def _eligible_areas(gray1: np.ndarray, gray2: np.ndarray, tv, uv1: np.ndarray, u
         at = index[ys, xs]
         eligible = np.zeros((h, w), bool)
         if len(at):  # (OpenCV returns no array for no points)
-            q = cv2.perspectiveTransform(uv1[at].reshape(-1, 1, 2), _homography(pose, abc)).reshape(-1, 2)
+            q = cv2.perspectiveTransform(uv1[at].reshape(-1, 1, 2), H).reshape(-1, 2)
             off = np.linalg.norm(q - uv2[at], axis=1) > off_px
             eligible[ys[off], xs[off]] = True
         # (the halves test, four more alignments, asked only where matches would move)

@@ -749,7 +749,9 @@ def drop_off_coarse(disp: np.ndarray, grid: LineGrid, found: CoarseParallax, inv
     finite = np.isfinite(P)
     square = np.ones((COARSE_CHECK_SQUARE, COARSE_CHECK_SQUARE), np.uint8)
     # (OpenCV's morphology leaves cells beyond the coarse line images out of the square)
-    judged = finite & found.textured if found.once is None else finite & found.textured & found.once
+    judged = finite & found.textured
+    if found.once is not None:
+        judged &= found.once
     every = cv2.erode(judged.astype(np.uint8), square).astype(bool)
     spread = cv2.subtract(cv2.dilate(np.where(finite, P, np.float32(-1e9)), square),
                           cv2.erode(np.where(finite, P, np.float32(1e9)), square))
