@@ -101,6 +101,25 @@ def test_a_box_in_front_of_the_wall_keeps_its_matches():
     assert len(got.moved) >= 0.9 * wrong[ij].sum()
 
 
+def test_the_largest_planes_are_the_wall_then_the_box_each_with_its_own_matches():
+    """The plane RANSAC under the pose finds the wall (most matches) and then the box's face, each
+    within 1 px of its true matches: the wall's plane at the wall's depth, and every match of
+    each on its own plane; a second surface's matches are never the first's."""
+    from sefm_recon.matching.dominant import _largest_planes
+    from sefm_recon.matching.planes import _pose
+
+    _, _, parallax = _scene(box=True)
+    uv1, uv2, X, truth = _matches(parallax, np.zeros((H, W), bool))
+    planes = list(_largest_planes(_pose(TV), uv1, uv2, X[:, 2], np.random.default_rng(0)))
+    assert len(planes) == 2
+    (wall, on_wall), (box, on_box) = planes
+    assert set(on_wall) == set(np.flatnonzero(truth == WALL))
+    assert set(on_box) == set(np.flatnonzero(truth == BOX_PARALLAX))
+    # 1 / z = a u + b v + c: fronto-parallel planes at z = F / parallax (unit baseline)
+    assert np.allclose(wall, [0, 0, WALL / F], atol=1e-6)
+    assert np.allclose(box, [0, 0, BOX_PARALLAX / F], atol=1e-6)
+
+
 def test_without_a_plane_of_enough_matches_nothing_moves():
     """Too few matches for any plane: nothing is aligned or moved."""
     one, two, parallax = _scene(box=False)

@@ -8,10 +8,11 @@ plane aligned by the intensities (:func:`.plane_align.align_plane`, whose coarse
 averages the stripes away) and started 10 px off on that wall converges to the truth
 (median 0.00 px over its 34,380 pixels).
 
-So the largest planes among the matches (RANSAC homographies, :data:`MAX_PLANES`, each with
-:data:`MIN_PLANE_SHARE` of the matches within :data:`RANSAC_PX`) are aligned by the
-intensities on a sample of their matches, kept where their halves agree and image 2 bears
-them out (as the plain regions' aligned planes, :func:`.planes._aligned_surface`). Where
+So the largest planes among the matches (the plane fill's RANSAC over a plane's 3 parameters
+under the pose, :data:`MAX_PLANES`, each with :data:`MIN_PLANE_SHARE` of the matches within
+1 px) are aligned by the intensities on a sample of their matches, kept where their halves
+agree and image 2 bears them out (as the plain regions' aligned planes,
+:func:`.planes._aligned_surface`). Where
 image 2 warped by such a plane matches image 1 over the normalisation's window
 (:func:`.plane_align.agreement` at least :data:`.plane_align.FILL_ZNCC`), and that area
 reaches the plane's own matches, a match more than :data:`MOVE_PX` off the plane moves onto
@@ -38,7 +39,7 @@ from numba import njit
 from .checks import flat_windows
 from .plane_align import (ALIGNED_ZNCC, FILL_ZNCC, NORM_RADIUS, SIGMAS, _sample, agreement, align_images, align_plane,
                           halves_agree, masked_zncc, normalised_region)
-from .planes import MAX_ALIGN_PIXELS, _homography, _inverse_depth_plane, _median_over, _on_plane, _pose
+from .planes import MAX_ALIGN_PIXELS, _homography, _median_over, _on_plane, _plane_support, _pose
 from .stereo_sgbm import SPECKLE_SHARE
 
 __all__ = ["DominantMoves", "move_onto_dominant_planes"]
@@ -53,12 +54,6 @@ MAX_PLANES = 4
 #: A plane holds at least this share of the matches: below it the plane is one object's
 #: face, whose stripes the objects' edges anchor.
 MIN_PLANE_SHARE = 0.05
-#: A match lies on a RANSAC homography within this many px: the precision the matches are
-#: judged at.
-RANSAC_PX = 1.0
-#: Matches drawn for each RANSAC (its inliers then counted over all): enough for a plane
-#: of 5 % of them to be drawn in the iterations OpenCV needs.
-RANSAC_SAMPLE = 50_000
 #: A match this many px off an aligned plane is a gross error if the plane is its surface
 #: (a period off); within it, the slant and noise SGM's median and sub-pixel steps handle.
 MOVE_PX = 3.0
@@ -92,24 +87,23 @@ def _window_agreement(one: np.ndarray, two: np.ndarray, index: np.ndarray, uv2: 
     return np.nan_to_num(masked_zncc(one, at2, index >= 0), nan=-1.0)
 
 
-def _largest_planes(uv1: np.ndarray, uv2: np.ndarray, rng: np.random.Generator):
-    """Up to :data:`MAX_PLANES` sets of matches (indices), each on one homography within
-    :data:`RANSAC_PX`, largest first, none under :data:`MIN_PLANE_SHARE` of the matches."""
+def _largest_planes(pose, uv1: np.ndarray, uv2: np.ndarray, z: np.ndarray, rng: np.random.Generator):
+    """Up to :data:`MAX_PLANES` planes of the scene (:func:`.planes._plane_support`: RANSAC over
+    the 3 parameters the pose leaves a plane, as the plane fill's) and the indices of the
+    matches within 1 px of each (the precision the matches are judged at), largest
+    first, none under
+    :data:`MIN_PLANE_SHARE` of the matches; ``z`` (N,) the matches' depths."""
     left = np.ones(len(uv1), bool)
     for _ in range(MAX_PLANES):
         cand = np.flatnonzero(left)
-        if len(cand) < MIN_PLANE_SHARE * len(uv1) or len(cand) < 8:
+        if len(cand) < MIN_PLANE_SHARE * len(uv1) or len(cand) < 3:
             return
-        sub = rng.choice(cand, min(len(cand), RANSAC_SAMPLE), replace=False)
-        H, _ = cv2.findHomography(uv1[sub], uv2[sub], cv2.RANSAC, RANSAC_PX)
-        if H is None:
-            return
-        q = cv2.perspectiveTransform(uv1[cand].reshape(-1, 1, 2), H).reshape(-1, 2)
-        inliers = cand[np.linalg.norm(q - uv2[cand], axis=1) <= RANSAC_PX]
-        if len(inliers) < MIN_PLANE_SHARE * len(uv1):
+        abc, on = _plane_support(pose, uv1, uv2, z, cand, rng)
+        inliers = cand[on]
+        if abc is None or len(inliers) < MIN_PLANE_SHARE * len(uv1):
             return
         left[inliers] = False
-        yield inliers
+        yield abc, inliers
 
 
 def _eligible_areas(gray1: np.ndarray, gray2: np.ndarray, tv, uv1: np.ndarray, uv2: np.ndarray, z: np.ndarray,
@@ -139,10 +133,7 @@ def _eligible_areas(gray1: np.ndarray, gray2: np.ndarray, tv, uv1: np.ndarray, u
     flat = flat_windows(gray1).astype(np.uint8)
     n, labels, stats, _ = cv2.connectedComponentsWithStats(flat, connectivity=8)
     flat = (stats[:, cv2.CC_STAT_AREA] >= erode.size)[labels] & (flat > 0)
-    for on in _largest_planes(uv1, uv2, rng):
-        abc = _inverse_depth_plane(uv1[on], z[on])
-        if abc is None:
-            continue
+    for abc, on in _largest_planes(pose, uv1, uv2, z, rng):
         sample = uv1[np.sort(rng.choice(on, min(len(on), MAX_ALIGN_PIXELS), replace=False))]
         images = align_images(gray1, g2, sample)
         abc = align_plane(images, A, e, sample, abc)

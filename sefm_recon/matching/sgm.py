@@ -880,8 +880,11 @@ def match_pair_sgm(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config,
     del disp, islands, cells
     n_sgm = len(uv1)
     n_planes = n_moved = n_scattered = 0
-    image1_gray, image2_gray = to_gray(img1), to_gray(img2)  # (for the plane fill and the dominant planes)
-    if opt.planes or opt.plane_snap or opt.scattered_check:
+    filled = opt.planes or opt.plane_snap or opt.scattered_check
+    # (for the plane fill and the dominant planes, where either runs)
+    image1_gray = to_gray(img1) if filled or opt.dominant_planes else None
+    image2_gray = to_gray(img2) if (filled and opt.aligned_planes) or opt.dominant_planes else None
+    if filled:
         pf = fill_planes(image1_gray, size2, tv, uv1, uv2, X, fill=opt.planes, snap=opt.plane_snap,
                          drop=opt.scattered_check, rims=opt.rim_planes, repeats=repeats,
                          start=SearchStart(grid, float(min_d)) if opt.scattered_check else None,
