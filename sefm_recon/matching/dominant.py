@@ -90,9 +90,9 @@ def _window_agreement(one: np.ndarray, two: np.ndarray, index: np.ndarray, uv2: 
 def _largest_planes(pose, uv1: np.ndarray, uv2: np.ndarray, z: np.ndarray, rng: np.random.Generator):
     """Up to :data:`MAX_PLANES` planes of the scene (:func:`.planes._plane_support`: RANSAC over
     the 3 parameters the pose leaves a plane, as the plane fill's) and the indices of the
-    matches within 1 px of each (the precision the matches are judged at), largest
-    first, none under
-    :data:`MIN_PLANE_SHARE` of the matches; ``z`` (N,) the matches' depths."""
+    matches within 1 px of each (the precision the matches are judged at), largest first,
+    none under :data:`MIN_PLANE_SHARE` of the matches. ``pose``: the pair's
+    (:func:`.planes._pose`); ``uv1``, ``uv2``: (N, 2) the matches; ``z``: (N,) their depths."""
     left = np.ones(len(uv1), bool)
     for _ in range(MAX_PLANES):
         cand = np.flatnonzero(left)
