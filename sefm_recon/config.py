@@ -290,6 +290,9 @@ class SgmConfig:
     #: move the matches over 3 px off the scene's largest planes, aligned by the intensities,
     #: onto them where image 2 under the plane agrees better (:mod:`.matching.dominant`)
     dominant_planes: bool = True
+    #: give back the estimates the repeat check dropped where they lie on one of those planes,
+    #: in its area where image 2 under it agrees, or move them onto it (:mod:`.matching.dominant`)
+    repeat_restore: bool = True
 
 
 @dataclass

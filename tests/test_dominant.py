@@ -159,3 +159,52 @@ def test_reduced_pixels_are_each_matchs_pixel_and_the_first_match_in_each():
     xy = np.minimum((uv1 * 0.3).astype(np.int64), [w - 1, h - 1])
     assert np.array_equal(pixel, xy[:, 1] * w + xy[:, 0])
     assert np.array_equal(first, np.unique(pixel, return_index=True)[1])
+
+
+def _as_candidates(uv1, uv2, X, region):
+    """The matches split into the step's own (outside ``region`` (H, W) bool) and its
+    candidates (inside), with the candidates' indices among all."""
+    inside = region[uv1[:, 1].astype(int), uv1[:, 0].astype(int)]
+    own, cand = np.flatnonzero(~inside), np.flatnonzero(inside)
+    return (uv1[own], uv2[own], X[own]), (uv1[cand], uv2[cand], X[cand]), cand
+
+
+def test_candidates_on_an_aligned_plane_are_given_back_and_those_a_period_off_moved_onto_it():
+    """The wall's matches in a band are candidates (the repeat check's drops), a patch of them
+    a period off: the step gives every candidate back on the wall, the right ones as they were
+    and those a period off on the plane (within 0.1 px of the truth); the wall's own matches,
+    all right, do not move."""
+    one, two, parallax = _scene(box=False)
+    wrong = _patch()
+    uv1, uv2, X, truth = _matches(parallax, wrong)
+    band = np.zeros((H, W), bool)
+    band[70:190, :] = True
+    own, cands, idx = _as_candidates(uv1, uv2, X, band)
+    got = move_onto_dominant_planes(one, two, TV, *own, candidates=cands)
+    assert got.planes >= 1 and len(got.moved) == 0
+    assert len(got.restored) >= 0.95 * len(idx)
+    expected = cands[0][got.restored] - np.column_stack([truth[idx][got.restored], np.zeros(len(got.restored))])
+    assert np.abs(got.restored_uv2 - expected).max() < 0.1
+    assert np.allclose(got.restored_xyz[:, 2], F / WALL, rtol=0.01)
+    right = ~wrong[uv1[idx, 1].astype(int), uv1[idx, 0].astype(int)][got.restored]
+    assert np.array_equal(got.restored_uv2[right], cands[1][got.restored][right])  # (as SGM left them)
+
+
+def test_candidates_off_every_plane_found_among_the_matches_are_not_given_back():
+    """The box's matches and a band of the wall's are candidates: the box, on no plane of the
+    step's own matches (its plane is found among those alone), gets none back, the wall's band
+    all of its own; with only candidates and five matches, no plane is found and none comes back."""
+    one, two, parallax = _scene(box=True)
+    uv1, uv2, X, truth = _matches(parallax, np.zeros((H, W), bool))
+    on_box = np.zeros((H, W), bool)
+    on_box[BOX] = True
+    band = on_box.copy()
+    band[:, 200:260] = True
+    own, cands, idx = _as_candidates(uv1, uv2, X, band)
+    got = move_onto_dominant_planes(one, two, TV, *own, candidates=cands)
+    boxed = on_box[uv1[idx, 1].astype(int), uv1[idx, 0].astype(int)]
+    assert not boxed[got.restored].any()
+    assert np.count_nonzero(~boxed[got.restored]) >= 0.9 * np.count_nonzero(~boxed)
+    few = tuple(a[:5] for a in own)
+    none = move_onto_dominant_planes(one, two, TV, *few, candidates=cands)
+    assert none.planes == 0 and len(none.restored) == 0

@@ -24,6 +24,16 @@ matches of at least :data:`MIN_PATCH_SHARE` of the view and one window. The area
 by the window first: about a surface in front of the plane, the windows of its edge hold
 the plane's texture and agree with it. Its windows lie inside the image and off every area
 of one value (a turned image's fill, whose edge is no edge of the scene).
+
+The same planes give back what the repeat check (:mod:`.periodic`) dropped: on a striped
+surface without other texture it drops every estimate, right or not, since no window tells
+the periods apart (generated seed 192's striped floor, 0.68 of coverage against DIS's 0.69).
+Those candidates join the matches for the step's own test (a plane's own correlation and
+the matches' window agreement), and come back where they lie in a kept plane's area: as
+SGM left them within :data:`MOVE_PX` of it, moved onto it where the move's test above holds.
+The planes are found among the matches alone: a striped floor's candidates lie a period off
+in patches that are planes too, and without other texture such a plane agrees with image 2
+as well as the true one (seed 192's floor given back a period off: 0.74 at 1 px).
 """
 
 from __future__ import annotations
@@ -72,6 +82,9 @@ class DominantMoves(NamedTuple):
     uv2: np.ndarray  #: (M, 2) their new partners, COLMAP positions of image 2
     xyz: np.ndarray  #: (M, 3) their new points, camera 1's frame
     planes: int  #: planes aligned, kept and moved onto
+    restored: np.ndarray  #: (K,) int64 indices of the candidates given back (moved onto a plane or as they were)
+    restored_uv2: np.ndarray  #: (K, 2) their partners
+    restored_xyz: np.ndarray  #: (K, 3) their points
 
 
 def _window_agreement(one: np.ndarray, two: np.ndarray, index: np.ndarray, uv2: np.ndarray) -> np.ndarray:
@@ -87,33 +100,38 @@ def _window_agreement(one: np.ndarray, two: np.ndarray, index: np.ndarray, uv2: 
     return np.nan_to_num(masked_zncc(one, at2, index >= 0), nan=-1.0)
 
 
-def _largest_planes(pose, uv1: np.ndarray, uv2: np.ndarray, z: np.ndarray, rng: np.random.Generator):
+def _largest_planes(pose, uv1: np.ndarray, uv2: np.ndarray, z: np.ndarray, rng: np.random.Generator,
+                    found_on: np.ndarray | None = None):
     """Up to :data:`MAX_PLANES` planes of the scene (:func:`.planes._plane_support`: RANSAC over
     the 3 parameters the pose leaves a plane, as the plane fill's) and the indices of the
     matches within 1 px of each (the precision the matches are judged at), largest first,
     none under :data:`MIN_PLANE_SHARE` of the matches. ``pose``: the pair's
-    (:func:`.planes._pose`); ``uv1``, ``uv2``: (N, 2) the matches; ``z``: (N,) their depths."""
-    left = np.ones(len(uv1), bool)
+    (:func:`.planes._pose`); ``uv1``, ``uv2``: (N, 2) the matches; ``z``: (N,) their depths;
+    ``found_on``: (N,) bool, the matches the planes are found among (default all)."""
+    left = np.ones(len(uv1), bool) if found_on is None else found_on.copy()
+    total = np.count_nonzero(left)
     for _ in range(MAX_PLANES):
         cand = np.flatnonzero(left)
-        if len(cand) < MIN_PLANE_SHARE * len(uv1) or len(cand) < 3:
+        if len(cand) < MIN_PLANE_SHARE * total or len(cand) < 3:
             return
         abc, on = _plane_support(pose, uv1, uv2, z, cand, rng)
         inliers = cand[on]
-        if abc is None or len(inliers) < MIN_PLANE_SHARE * len(uv1):
+        if abc is None or len(inliers) < MIN_PLANE_SHARE * total:
             return
         left[inliers] = False
         yield abc, inliers
 
 
 def _eligible_areas(gray1: np.ndarray, gray2: np.ndarray, tv, uv1: np.ndarray, uv2: np.ndarray, z: np.ndarray,
-                    rng: np.random.Generator, off_px: float):
+                    rng: np.random.Generator, off_px: float, found_on: np.ndarray | None = None):
     """For each of the largest planes (:func:`_largest_planes`) aligned, and borne out by image 2,
     its ``abc``, the (H, W) bool pixels of image 1 where a match off it may move onto it (in the
     area where image 2 under it agrees, eroded by the window and joined to its own matches, and
     where its correlation beats the matches' own: the module's docstring; where the match lies
-    over ``off_px`` px off it) and a callable asking whether its halves agree. Arguments as
-    :func:`move_onto_dominant_planes`'s, ``z`` (N,) the matches' depths."""
+    over ``off_px`` px off it), that area, (H, W) bool, and a callable asking whether its halves
+    agree. Arguments as
+    :func:`move_onto_dominant_planes`'s, ``z`` (N,) the matches' depths, ``found_on`` as
+    :func:`_largest_planes`'."""
     h, w = gray1.shape
     pose = _pose(tv)
     A, e = pose.K2 @ pose.R @ pose.K1inv, pose.K2 @ pose.t
@@ -133,7 +151,7 @@ def _eligible_areas(gray1: np.ndarray, gray2: np.ndarray, tv, uv1: np.ndarray, u
     flat = flat_windows(gray1).astype(np.uint8)
     n, labels, stats, _ = cv2.connectedComponentsWithStats(flat, connectivity=8)
     flat = (stats[:, cv2.CC_STAT_AREA] >= erode.size)[labels] & (flat > 0)
-    for abc, on in _largest_planes(pose, uv1, uv2, z, rng):
+    for abc, on in _largest_planes(pose, uv1, uv2, z, rng, found_on):
         sample = uv1[np.sort(rng.choice(on, min(len(on), MAX_ALIGN_PIXELS), replace=False))]
         images = align_images(gray1, g2, sample)
         abc = align_plane(images, A, e, sample, abc)
@@ -153,7 +171,8 @@ def _eligible_areas(gray1: np.ndarray, gray2: np.ndarray, tv, uv1: np.ndarray, u
                        cv2.GaussianBlur(g2, (0, 0), SIGMAS[-1]))
             own = _window_agreement(*blurred, index, uv2)
         # the matches there over off_px off the plane (measured at those pixels alone)
-        ys, xs = np.nonzero(reached[labels] & (z_all > own) & (index >= 0))
+        area = reached[labels]
+        ys, xs = np.nonzero(area & (z_all > own) & (index >= 0))
         at = index[ys, xs]
         eligible = np.zeros((h, w), bool)
         if len(at):  # (OpenCV returns no array for no points)
@@ -161,7 +180,7 @@ def _eligible_areas(gray1: np.ndarray, gray2: np.ndarray, tv, uv1: np.ndarray, u
             off = np.linalg.norm(q - uv2[at], axis=1) > off_px
             eligible[ys[off], xs[off]] = True
         # (the halves test, four more alignments, asked only where matches would move)
-        yield abc, eligible, partial(halves_agree, images, A, e, sample, abc)
+        yield abc, eligible, area, partial(halves_agree, images, A, e, sample, abc)
 
 
 @njit(cache=True)
@@ -181,20 +200,33 @@ def _reduced_pixels(uv1, f, w, h):
 
 
 def move_onto_dominant_planes(gray1: np.ndarray, gray2: np.ndarray, tv, uv1: np.ndarray, uv2: np.ndarray,
-                              X: np.ndarray, *, seed: int = 0) -> DominantMoves:
+                              X: np.ndarray, *, candidates: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+                              seed: int = 0) -> DominantMoves:
     """The matches a period off the scene's largest aligned planes, moved onto them (the module's
     docstring). ``gray1``: (H, W) uint8 image 1; ``gray2``: (H2, W2) uint8 image 2; ``tv``: the
     pair's geometry (``K1``, ``K2``, ``R``, ``t``); ``uv1``, ``uv2``: (N, 2) the matches, COLMAP
     positions, at most one per pixel of image 1; ``X``: (N, 3) their points (camera 1's frame).
+    ``candidates``: ``(uv1, uv2, X)`` of M more matches on pixels without one, that the step
+    judges with the others (their planes found and aligned on them too) and gives back where
+    they lie in a kept plane's area within :data:`MOVE_PX` of it, or move onto it
+    (:attr:`DominantMoves.restored`: the estimates the repeat check dropped, :mod:`.periodic`).
     Images over :data:`ALIGN_SIDE` are judged on copies reduced to it (one match a reduced
     pixel), and the matches moved at their own size. The arguments are not changed."""
     h, w = gray1.shape
-    none = DominantMoves(np.zeros(0, np.int64), np.zeros((0, 2)), np.zeros((0, 3)), 0)
+    n_own = len(uv1)
+    if candidates is not None and len(candidates[0]):
+        uv1, uv2, X = (np.concatenate([a, c]) for a, c in zip((uv1, uv2, X), candidates))
+    none = DominantMoves(np.zeros(0, np.int64), np.zeros((0, 2)), np.zeros((0, 3)), 0,
+                         np.zeros(0, np.int64), np.zeros((0, 2)), np.zeros((0, 3)))
     if len(uv1) < 8:
         return none
     rng = np.random.default_rng(seed)
     f = min(1.0, ALIGN_SIDE / max(h, w))
     px = uv1.astype(np.int64)
+    is_cand = np.arange(len(uv1)) >= n_own
+    # (the planes found among the matches alone: on stripes without other texture a plane a
+    # period off agrees with image 2 as well as the true one)
+    found_on = ~is_cand if is_cand.any() else None
     if f < 1.0:
         size1 = (max(1, round(w * f)), max(1, round(h * f)))
         size2 = (max(1, round(gray2.shape[1] * f)), max(1, round(gray2.shape[0] * f)))
@@ -203,21 +235,26 @@ def move_onto_dominant_planes(gray1: np.ndarray, gray2: np.ndarray, tv, uv1: np.
         S = np.diag([f, f, 1.0])  # (COLMAP positions scale about the corner)
         small_tv = SimpleNamespace(K1=S @ tv.K1, K2=S @ tv.K2, R=tv.R, t=tv.t)
         at, one = _reduced_pixels(np.ascontiguousarray(uv1, np.float64), f, *size1)  # (a match a reduced pixel)
-        areas = _eligible_areas(small1, small2, small_tv, uv1[one] * f, uv2[one] * f, X[one, 2], rng, MOVE_PX * f)
+        areas = _eligible_areas(small1, small2, small_tv, uv1[one] * f, uv2[one] * f, X[one, 2], rng, MOVE_PX * f,
+                                None if found_on is None else found_on[one])
     else:
         at = px[:, 1] * w + px[:, 0]
-        areas = _eligible_areas(gray1, gray2, tv, uv1, uv2, X[:, 2], rng, MOVE_PX)
-    moved = np.zeros(len(uv1), bool)
+        areas = _eligible_areas(gray1, gray2, tv, uv1, uv2, X[:, 2], rng, MOVE_PX, found_on)
+    done = np.zeros(len(uv1), bool)  # moved, or given back where they lie
     to_idx, to_uv2, to_xyz, kept = [], [], [], 0
     min_patch = max(MIN_PATCH_SHARE * h * w, (2 * NORM_RADIUS + 1) ** 2 / (f * f))
-    for abc, eligible, halves in areas:
-        if not eligible.any():  # (no match to look up)
-            continue
+    for abc, eligible, area, halves in areas:
         abc = abc * np.array([f, f, 1.0])  # (the plane in the matches' own pixels)
-        cand = np.flatnonzero(eligible.ravel()[at] & ~moved)
+        move = eligible.ravel()[at] & ~done
+        stay = area.ravel()[at] & is_cand & ~done & ~move  # (candidates on the plane: given back as they are)
+        if not (move.any() or stay.any()):  # (no match to look up)
+            continue
+        cand = np.flatnonzero(move | stay)
         new2, newX, ok = _on_plane(tv, uv1[cand], abc)
-        go = ok & (np.linalg.norm(new2 - uv2[cand], axis=1) > MOVE_PX)
-        cand, new2, newX = cand[go], new2[go], newX[go]
+        off = np.linalg.norm(new2 - uv2[cand], axis=1) > MOVE_PX
+        go = ok & np.where(move[cand], off, ~off)
+        cand, off, new2, newX = cand[go], off[go, None], new2[go], newX[go]
+        new2, newX = np.where(off, new2, uv2[cand]), np.where(off, newX, X[cand])
         if not len(cand):
             continue
         patch = np.zeros((h, w), np.uint8)
@@ -229,10 +266,12 @@ def move_onto_dominant_planes(gray1: np.ndarray, gray2: np.ndarray, tv, uv1: np.
         if not go.any() or not halves():
             continue
         kept += 1
-        moved[cand[go]] = True
+        done[cand[go]] = True
         to_idx.append(cand[go]), to_uv2.append(new2[go]), to_xyz.append(newX[go])
     if not to_idx:
         return none._replace(planes=kept)
     idx = np.concatenate(to_idx)
     order = np.argsort(idx)  # (the planes' moves are disjoint)
-    return DominantMoves(idx[order], np.concatenate(to_uv2)[order], np.concatenate(to_xyz)[order], kept)
+    idx, new2, newX = idx[order], np.concatenate(to_uv2)[order], np.concatenate(to_xyz)[order]
+    own = idx < n_own
+    return DominantMoves(idx[own], new2[own], newX[own], kept, idx[~own] - n_own, new2[~own], newX[~own])

@@ -894,9 +894,12 @@ def match_pair_sgm(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config,
     n_coarse = drop_off_coarse(disp, grid, found, min_d - 1.0) if found is not None and opt.coarse_check else 0
     n_rep, repeats = 0, None
     if opt.repeat_check:
-        before = disp.copy() if opt.scattered_check else None
+        restore = opt.dominant_planes and opt.repeat_restore
+        before = disp.copy() if opt.scattered_check or restore else None
         n_rep = drop_repeating(disp, repeat, min_d - 1.0, frames[0])
-        if n_rep and before is not None:  # the estimates dropped, for their plain regions' verdict (fill_planes)
+        # the estimates dropped, for their plain regions' verdict (fill_planes) and the dominant
+        # planes (given back where one bears them out)
+        if n_rep and before is not None:
             repeats = np.where(before > disp, before, np.float32(min_d - 1.0))
         del before
     n_frame = drop_frame_end_runs(disp, frames, min_d, min_d - 1.0) if opt.frame_check else 0
@@ -911,14 +914,15 @@ def match_pair_sgm(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config,
     # SGM found there, for its verdict, and one moved onto the region's plane is the plane's
     islands = speckle_islands(disp, num_d, min_d - 1.0, speckle_share_for(opt)) if opt.speckle_after else None
     if repeats is not None:  # (read back before the matches, so that their pixel-sized arrays are not held at once)
-        repeats = tuple(a.copy() for a in pixel_matches(repeats, min_d, grid, tv, size1, size2, opt.interpolate)[:2])
+        repeats = tuple(a.copy() for a in pixel_matches(repeats, min_d, grid, tv, size1, size2, opt.interpolate))
     # leading slices of pixel-sized arrays, so that the plane fill's matches (unmatched
     # pixels of image 1) append without copying the millions found (a few tenths of a
     # second on 2000x1500)
     uv1, uv2, X, cells = pixel_matches(disp, min_d, grid, tv, size1, size2, opt.interpolate)
     drop = islands.ravel()[cells] if islands is not None else np.zeros(len(uv1), bool)
     rows = cells  # each match's row of the line images, in place (a leading slice still)
-    rows //= disp.shape[1]
+    n_cols = disp.shape[1]
+    rows //= n_cols
     del disp, islands, cells
     n_sgm = len(uv1)
     n_planes = n_moved = n_scattered = 0
@@ -928,7 +932,8 @@ def match_pair_sgm(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config,
     image2_gray = to_gray(img2) if (filled and opt.aligned_planes) or opt.dominant_planes else None
     if filled:
         pf = fill_planes(image1_gray, size2, tv, uv1, uv2, X, fill=opt.planes, snap=opt.plane_snap,
-                         drop=opt.scattered_check, rims=opt.rim_planes, repeats=repeats,
+                         drop=opt.scattered_check, rims=opt.rim_planes,
+                         repeats=repeats[:2] if repeats is not None and opt.scattered_check else None,
                          start=SearchStart(grid, float(min_d)) if opt.scattered_check else None,
                          gray2=image2_gray if opt.aligned_planes else None)
         n_planes, n_moved, n_scattered = len(pf.uv1), len(pf.moved), len(pf.dropped)
@@ -945,13 +950,26 @@ def match_pair_sgm(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config,
         # no line of the line images (-1), and a lower confidence than a match SGM found
         uv1, uv2, X = append_rows(uv1, pf.uv1), append_rows(uv2, pf.uv2), append_rows(X, pf.xyz)
         rows = append_rows(rows, np.full(n_planes, -1, rows.dtype))
-    n_dominant = 0
+    n_dominant = n_restored = 0
     if opt.dominant_planes:
-        dm = move_onto_dominant_planes(image1_gray, image2_gray, tv, uv1, uv2, X)
+        candidates = None
+        if repeats is not None and opt.repeat_restore:  # (those on a pixel the plane fill took stay out)
+            free = np.ones(size1[::-1], bool)
+            free[uv1[:, 1].astype(np.int64), uv1[:, 0].astype(np.int64)] = False
+            c1, c2, cX, c_cells = repeats
+            keep = free[c1[:, 1].astype(np.int64), c1[:, 0].astype(np.int64)]
+            candidates = (c1[keep], c2[keep], cX[keep])
+            c_rows = c_cells[keep] // n_cols
+            del free, keep
+        del repeats
+        dm = move_onto_dominant_planes(image1_gray, image2_gray, tv, uv1, uv2, X, candidates=candidates)
         uv2[dm.moved], X[dm.moved] = dm.uv2, dm.xyz
-        n_dominant = len(dm.moved)
+        n_dominant, n_restored = len(dm.moved), len(dm.restored)
+        if n_restored:  # (SGM's own estimates: a match's confidence)
+            uv1, uv2 = append_rows(uv1, candidates[0][dm.restored]), append_rows(uv2, dm.restored_uv2)
+            X, rows = append_rows(X, dm.restored_xyz), append_rows(rows, c_rows[dm.restored])
     score = np.ones(len(uv1))
-    score[n_sgm:] = PLANE_SCORE
+    score[n_sgm:n_sgm + n_planes] = PLANE_SCORE
     timings["matching"] = time.perf_counter() - t0
     counts = {
         "line_pairs": int(len(grid.phi)),
@@ -972,9 +990,9 @@ def match_pair_sgm(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config,
                 "and %d moved onto a wider window's plane, %d filled on plain planes and %d moved onto them, %d on "
                 "plain regions mostly unmatched and on no one plane (or off theirs on no second one, or on the ties at the "
                 "search's first parallax) dropped, %d in islands under the speckle filter's window dropped, %d moved "
-                "onto the largest aligned planes, %d valid",
+                "onto the largest aligned planes and %d dropped on repeating texture given back on them, %d valid",
                 "4 full paths" if full else "3 directions", counts["line_pairs"], n_dense, n_half, n_off, n_lr, n_ends,
                 n_flat, n_out, n_col, n_occ, n_car, n_far, n_near, n_coarse, n_rep, n_frame, n_fat, n_fit, n_wide,
-                n_planes, n_moved, n_scattered, n_islands, n_dominant, len(uv1))
+                n_planes, n_moved, n_scattered, n_islands, n_dominant, n_restored, len(uv1))
     return DenseMatches(uv1, uv2, score, rows, X, counts, timings)
 
