@@ -211,8 +211,9 @@ def move_onto_dominant_planes(gray1: np.ndarray, gray2: np.ndarray, tv, uv1: np.
     pair's geometry (``K1``, ``K2``, ``R``, ``t``); ``uv1``, ``uv2``: (N, 2) the matches, COLMAP
     positions, at most one per pixel of image 1; ``X``: (N, 3) their points (camera 1's frame).
     ``candidates``: ``(uv1, uv2, X)`` of M more matches on pixels without one, that the step
-    judges with the others (their planes found and aligned on them too) and gives back where
-    they lie in a kept plane's area within :data:`MOVE_PX` of it, or move onto it
+    judges with the others (in the matches' window agreement; the planes are found among the
+    matches alone) and gives back where they lie in a kept plane's area within :data:`MOVE_PX`
+    of it, or moved onto it
     (:attr:`DominantMoves.restored`: the estimates the repeat and left-right checks dropped).
     Images over :data:`ALIGN_SIDE` are judged on copies reduced to it (one match a reduced
     pixel), and the matches moved at their own size. The arguments are not changed."""
