@@ -293,8 +293,6 @@ class SgmConfig:
     #: give back the estimates the repeat check dropped where they lie on one of those planes,
     #: in its area where image 2 under it agrees, or move them onto it (:mod:`.matching.dominant`)
     repeat_restore: bool = True
-    #: give back the estimates the left-right check dropped in the same way (:mod:`.matching.dominant`)
-    lr_restore: bool = True
 
 
 @dataclass

@@ -25,16 +25,12 @@ by the window first: about a surface in front of the plane, the windows of its e
 the plane's texture and agree with it. Its windows lie inside the image and off every area
 of one value (a turned image's fill, whose edge is no edge of the scene).
 
-The same planes give back what the repeat check (:mod:`.periodic`) and the left-right check
-dropped on them. On a striped surface without other texture the repeat check drops every
-estimate, right or not, since no window tells the periods apart (generated seed 192's
-striped floor, 0.68 of coverage against DIS's 0.69); the left-right check's second SGM, at
-half size, goes a period off on fine stripes (seed 240's wall, 0.76 against DIS's 0.79).
+The same planes give back what the repeat check (:mod:`.periodic`) dropped: on a striped
+surface without other texture it drops every estimate, right or not, since no window tells
+the periods apart (generated seed 192's striped floor, 0.68 of coverage against DIS's 0.69).
 Those candidates join the matches for the step's own test (a plane's own correlation and
 the matches' window agreement), and come back where they lie in a kept plane's area: as
 SGM left them within :data:`MOVE_PX` of it, moved onto it where the move's test above holds.
-The area keeps out the cells image 2 does not see: there image 2 under the plane shows
-another surface.
 The planes are found among the matches alone: a striped floor's candidates lie a period off
 in patches that are planes too, and without other texture such a plane agrees with image 2
 as well as the true one (seed 192's floor given back a period off: 0.74 at 1 px).
@@ -214,7 +210,7 @@ def move_onto_dominant_planes(gray1: np.ndarray, gray2: np.ndarray, tv, uv1: np.
     judges with the others (in the matches' window agreement; the planes are found among the
     matches alone) and gives back where they lie in a kept plane's area within :data:`MOVE_PX`
     of it, or moved onto it
-    (:attr:`DominantMoves.restored`: the estimates the repeat and left-right checks dropped).
+    (:attr:`DominantMoves.restored`: the estimates the repeat check dropped, :mod:`.periodic`).
     Images over :data:`ALIGN_SIDE` are judged on copies reduced to it (one match a reduced
     pixel), and the matches moved at their own size. The arguments are not changed."""
     h, w = gray1.shape

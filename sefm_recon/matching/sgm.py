@@ -872,13 +872,8 @@ def match_pair_sgm(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config,
     gray1 = to_gray(L1)  # once, for the plain windows and the wide fit
     plain = (plain_windows(gray1) if opt.plain_fit or opt.wide_fit or opt.occlusion_check or opt.carried_check
              or opt.lr_check else None)
-    lr_drops = None  # (the estimates the checks drop that the dominant planes may give back)
     if opt.lr_check:
-        before = disp.copy() if opt.dominant_planes and opt.lr_restore else None
         n_lr = drop_left_right(disp, halves, min_d, num_d, jump, full, min_d - 1.0, textured=~plain)
-        if n_lr and before is not None:
-            lr_drops = np.where(before > disp, before, np.float32(min_d - 1.0))
-        del before
     del halves
     n_flat = drop_flat_windows(disp, L1, min_d - 1.0) if opt.flat_check else 0
     n_out = drop_outside_windows(disp, span2, min_d, min_d - 1.0) if opt.outside_check else 0
@@ -918,20 +913,8 @@ def match_pair_sgm(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config,
     # judged here, dropped after the plane fill: a plain region's islands are part of what
     # SGM found there, for its verdict, and one moved onto the region's plane is the plane's
     islands = speckle_islands(disp, num_d, min_d - 1.0, speckle_share_for(opt)) if opt.speckle_after else None
-    # the dropped estimates read back (before the matches, so that their pixel-sized arrays are
-    # not held at once): the repeat check's for the plane fill's verdict, and with the left-right
-    # check's as the dominant planes' candidates
-    given = repeats if opt.dominant_planes and opt.repeat_restore else None
-    if lr_drops is not None:
-        given = lr_drops if given is None else np.maximum(given, lr_drops)  # (disjoint cells)
-    del lr_drops
-    candidates = scattered = None
-    if given is not None:
-        candidates = tuple(a.copy() for a in pixel_matches(given, min_d, grid, tv, size1, size2, opt.interpolate))
-    if repeats is not None and opt.scattered_check:
-        scattered = (candidates[:2] if given is repeats else
-                     tuple(a.copy() for a in pixel_matches(repeats, min_d, grid, tv, size1, size2, opt.interpolate)[:2]))
-    del given, repeats
+    if repeats is not None:  # (read back before the matches, so that their pixel-sized arrays are not held at once)
+        repeats = tuple(a.copy() for a in pixel_matches(repeats, min_d, grid, tv, size1, size2, opt.interpolate))
     # leading slices of pixel-sized arrays, so that the plane fill's matches (unmatched
     # pixels of image 1) append without copying the millions found (a few tenths of a
     # second on 2000x1500)
@@ -950,7 +933,7 @@ def match_pair_sgm(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config,
     if filled:
         pf = fill_planes(image1_gray, size2, tv, uv1, uv2, X, fill=opt.planes, snap=opt.plane_snap,
                          drop=opt.scattered_check, rims=opt.rim_planes,
-                         repeats=scattered,
+                         repeats=repeats[:2] if repeats is not None and opt.scattered_check else None,
                          start=SearchStart(grid, float(min_d)) if opt.scattered_check else None,
                          gray2=image2_gray if opt.aligned_planes else None)
         n_planes, n_moved, n_scattered = len(pf.uv1), len(pf.moved), len(pf.dropped)
@@ -969,14 +952,16 @@ def match_pair_sgm(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config,
         rows = append_rows(rows, np.full(n_planes, -1, rows.dtype))
     n_dominant = n_restored = 0
     if opt.dominant_planes:
-        if candidates is not None:  # (those on a pixel the plane fill took stay out)
+        candidates = None
+        if repeats is not None and opt.repeat_restore:  # (those on a pixel the plane fill took stay out)
             free = np.ones(size1[::-1], bool)
             free[uv1[:, 1].astype(np.int64), uv1[:, 0].astype(np.int64)] = False
-            c1, c2, cX, c_cells = candidates
+            c1, c2, cX, c_cells = repeats
             keep = free[c1[:, 1].astype(np.int64), c1[:, 0].astype(np.int64)]
             candidates = (c1[keep], c2[keep], cX[keep])
             c_rows = c_cells[keep] // n_cols
-            del free, keep, c1, c2, cX, c_cells
+            del free, keep
+        del repeats
         dm = move_onto_dominant_planes(image1_gray, image2_gray, tv, uv1, uv2, X, candidates=candidates)
         uv2[dm.moved], X[dm.moved] = dm.uv2, dm.xyz
         n_dominant, n_restored = len(dm.moved), len(dm.restored)
@@ -1005,7 +990,7 @@ def match_pair_sgm(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config,
                 "and %d moved onto a wider window's plane, %d filled on plain planes and %d moved onto them, %d on "
                 "plain regions mostly unmatched and on no one plane (or off theirs on no second one, or on the ties at the "
                 "search's first parallax) dropped, %d in islands under the speckle filter's window dropped, %d moved "
-                "onto the largest aligned planes and %d dropped by the left-right or repeat check given back on them, %d valid",
+                "onto the largest aligned planes and %d dropped on repeating texture given back on them, %d valid",
                 "4 full paths" if full else "3 directions", counts["line_pairs"], n_dense, n_half, n_off, n_lr, n_ends,
                 n_flat, n_out, n_col, n_occ, n_car, n_far, n_near, n_coarse, n_rep, n_frame, n_fat, n_fit, n_wide,
                 n_planes, n_moved, n_scattered, n_islands, n_dominant, n_restored, len(uv1))
