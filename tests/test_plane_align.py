@@ -300,6 +300,38 @@ def test_an_aligned_floor_is_filled_beyond_its_matches_where_image_2_shows_it_an
     assert len(fill_planes(one, (W, H), TV, uv1, uv2, X).uv1) == 0
 
 
+def test_a_plane_whose_halves_part_among_its_matches_is_judged_again_where_image_2_agrees(monkeypatch):
+    """Matches on the floor's left quarter alone. Where the halves test fails on the pixels
+    among them (here forced: any set of at most that many pixels), the plane is judged again
+    over those and the floor's pixels where image 2 under it agrees, four times as many: its
+    halves agree there and the floor is filled. Where image 2 bears the plane out nowhere
+    (one value), there is nothing wider to judge it on, and nothing is filled."""
+    import sefm_recon.matching.planes as planes
+
+    one, two, uv1, uv2, X, _ = _plain_floor_scene()
+    left = uv1[:, 0] < W / 4
+    uv1, uv2, X = uv1[left], uv2[left], X[left]
+    asked = []
+    honest = planes.halves_agree
+    assert len(fill_planes(one, (W, H), TV, uv1, uv2, X, gray2=two).uv1) > 3 * len(uv1)  # (agreeing at once)
+
+    def halves(images, A, e, px, abc):
+        asked.append(len(px))
+        return len(px) > W / 3 * H and honest(images, A, e, px, abc)
+
+    monkeypatch.setattr(planes, "halves_agree", halves)
+    out = fill_planes(one, (W, H), TV, uv1, uv2, X, gray2=two)
+    assert len(asked) == 2 and asked[0] < W / 3 * H < asked[1]
+    filled = np.zeros((H, W), bool)
+    filled[out.uv1[:, 1].astype(int), out.uv1[:, 0].astype(int)] = True
+    assert filled[24:H - 24, W // 2:W - 24].mean() > 0.95
+    assert np.abs(out.uv1[:, 0] - out.uv2[:, 0] - _parallax(FLOOR, out.uv1)).max() < 0.25
+    asked.clear()
+    two[:] = 140
+    out = fill_planes(one, (W, H), TV, uv1, uv2, X, gray2=two)
+    assert asked == asked[:1] and len(out.uv1) == 0 and len(out.moved) == 0
+
+
 def test_an_object_in_front_of_an_aligned_floor_keeps_its_matches():
     """The mostly unmatched floor of the tests above, and on it a plain box face of 48 x 48 px
     with no intensity edge between them, its pixels 70 % matched 6 px nearer (one patch well
