@@ -293,6 +293,9 @@ class SgmConfig:
     #: give back the estimates the repeat check dropped where they lie on one of those planes,
     #: in its area where image 2 under it agrees, or move them onto it (:mod:`.matching.dominant`)
     repeat_restore: bool = True
+    #: give back in the same way the estimates the left-right check dropped on texture repeating
+    #: along the lines (:func:`.matching.sgm.repeating_drops`)
+    lr_restore: bool = True
 
 
 @dataclass

@@ -91,6 +91,7 @@ SGM_ABLATIONS: dict[str, list[str]] = {
     "- islands the checks leave under the speckle window dropped": ["sgm.speckle_after=false"],
     "- matches a period off the largest aligned planes moved onto them": ["sgm.dominant_planes=false"],
     "- estimates on repeating texture given back on those planes": ["sgm.repeat_restore=false"],
+    "- estimates the left-right check dropped on repeating texture given back there": ["sgm.lr_restore=false"],
 }
 
 #: Ablation rows of the sequential DP: each removes (or, marked +, adds) one stage beyond the paper.

@@ -270,6 +270,31 @@ def test_the_left_right_check_drops_estimates_that_sgm_from_image_2_contradicts(
     assert np.count_nonzero(disp[right] == 12.0) > 0.99 * right.sum()
 
 
+def test_the_left_right_checks_drops_kept_for_the_planes_are_those_on_stripes():
+    """Of the estimates the left-right check dropped, those on texture repeating along the
+    lines (where its half-size SGM can go a period off) are kept for the dominant planes to
+    judge; those on texture that does not repeat stay dropped, and none kept is None."""
+    from sefm_recon.matching.periodic import repeat_score
+    from sefm_recon.matching.sgm import repeating_drops
+
+    rng = np.random.default_rng(4)
+    cols = np.arange(256)
+    stripes = 128 + 60 * np.sin(2 * np.pi * cols / 8.0) + rng.normal(0, 2, (64, 256))
+    noise = cv2.GaussianBlur(rng.uniform(0, 255, (64, 256)).astype(np.float32), (0, 0), 1.5)
+    noise = cv2.normalize(noise, None, 20, 235, cv2.NORM_MINMAX)
+    image = np.clip(np.where(cols < 128, stripes, noise), 0, 255).astype(np.uint8)
+    repeat = repeat_score(image, 48)
+    drops = np.full((64, 256), -1.0, np.float32)
+    drops[20:40, 30:100] = 12.0  # on the stripes
+    drops[20:40, 160:230] = 30.0  # on the texture beside them
+    kept = repeating_drops(drops.copy(), repeat, -1.0)
+    assert np.mean(kept[20:40, 30:100] == 12.0) > 0.95
+    assert np.all(kept[:, 128:] == -1.0) and np.all(kept[drops == -1.0] == -1.0)
+    only_texture = np.where(cols[None, :] >= 128, drops, np.float32(-1.0))
+    assert repeating_drops(only_texture, repeat, -1.0) is None
+    assert repeating_drops(drops.copy(), None, -1.0) is None
+
+
 def test_a_cell_beside_a_nearer_surface_fattened_over_its_partner_is_not_contradicted():
     """The second SGM's window fattens a nearer surface (parallax 15) over the farther (6) by
     up to half a block (2 reduced cells): an estimate of 6 whose partner's two cells hold 15

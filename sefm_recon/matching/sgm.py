@@ -40,7 +40,7 @@ from .checks import (drop_carried_plain, drop_collisions, drop_fattened_cells, d
                      flat_windows, speckle_islands)
 from .dominant import move_onto_dominant_planes
 from .lines import LineGrid, line_grid, line_images, match_parallax, pixel_grid
-from .periodic import ONCE_ZNCC, drop_repeating, repeat_score
+from .periodic import ONCE_ZNCC, REPEAT_ZNCC, drop_repeating, repeat_score
 from .planes import SearchStart, fill_planes
 from .readback import pixel_matches
 from .sefm import DenseMatches, depth_range
@@ -337,6 +337,21 @@ def _beyond_fattening(row, c0, d, tol, reach):
             if not abs(v - near) <= tol:
                 break
     return False
+
+
+def repeating_drops(drops: np.ndarray, repeat: np.ndarray | None, invalid: float) -> np.ndarray | None:
+    """Of the estimates a check dropped, ``drops`` ((rows, width) float32, ``invalid`` where it
+    dropped none; changed in place), those on texture that repeats along the lines
+    (``repeat``, :func:`.periodic.repeat_score`, at least :data:`.periodic.REPEAT_ZNCC`), the
+    others set to ``invalid``; None where none is left (or there is no ``repeat``). There the
+    left-right check's second SGM, at half size, can go a period off (a stripe of 8 columns
+    is one of 4 there), and the dominant planes may give them back (:mod:`.dominant`);
+    elsewhere its verdict stands (given back everywhere, the bench pair's drops that are no
+    stripes asked the planes' halves test: 16 % more matching time, results.md)."""
+    if repeat is None:
+        return None
+    drops[repeat < REPEAT_ZNCC] = np.float32(invalid)
+    return drops if np.any(drops > invalid) else None
 
 
 def halve_line_images(L1: np.ndarray, L2: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
@@ -872,13 +887,20 @@ def match_pair_sgm(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config,
     gray1 = to_gray(L1)  # once, for the plain windows and the wide fit
     plain = (plain_windows(gray1) if opt.plain_fit or opt.wide_fit or opt.occlusion_check or opt.carried_check
              or opt.lr_check else None)
+    lr_drops = None  # (the estimates the checks drop that the dominant planes may give back)
     if opt.lr_check:
+        before = disp.copy() if opt.dominant_planes and opt.lr_restore else None
         n_lr = drop_left_right(disp, halves, min_d, num_d, jump, full, min_d - 1.0, textured=~plain)
+        if n_lr and before is not None:
+            lr_drops = np.where(before > disp, before, np.float32(min_d - 1.0))
+        del before
     del halves
     n_flat = drop_flat_windows(disp, L1, min_d - 1.0) if opt.flat_check else 0
     n_out = drop_outside_windows(disp, span2, min_d, min_d - 1.0) if opt.outside_check else 0
     n_col = drop_collisions(disp, L1, L2, min_d, min_d - 1.0) if opt.collision_check else 0
     repeat = repeat_score(L1, num_d, frames[0][:, 1]) if opt.repeat_check else None  # (of the colours SGM matched)
+    if lr_drops is not None:
+        lr_drops = repeating_drops(lr_drops, repeat, min_d - 1.0)
     n_occ = drop_occluded_plain(disp, L1, plain, span2, min_d, min_d - 1.0) if opt.occlusion_check else 0
     n_car = drop_carried_plain(disp, L1, plain, min_d - 1.0) if opt.carried_check else 0
     gray2 = to_gray(L2) if opt.wide_fit else None
@@ -913,8 +935,20 @@ def match_pair_sgm(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config,
     # judged here, dropped after the plane fill: a plain region's islands are part of what
     # SGM found there, for its verdict, and one moved onto the region's plane is the plane's
     islands = speckle_islands(disp, num_d, min_d - 1.0, speckle_share_for(opt)) if opt.speckle_after else None
-    if repeats is not None:  # (read back before the matches, so that their pixel-sized arrays are not held at once)
-        repeats = tuple(a.copy() for a in pixel_matches(repeats, min_d, grid, tv, size1, size2, opt.interpolate))
+    # the dropped estimates read back (before the matches, so that their pixel-sized arrays are
+    # not held at once): the repeat check's for the plane fill's verdict, and with the left-right
+    # check's as the dominant planes' candidates
+    given = repeats if opt.dominant_planes and opt.repeat_restore else None
+    if lr_drops is not None:
+        given = lr_drops if given is None else np.maximum(given, lr_drops)  # (disjoint cells)
+    del lr_drops
+    candidates = scattered = None
+    if given is not None:
+        candidates = tuple(a.copy() for a in pixel_matches(given, min_d, grid, tv, size1, size2, opt.interpolate))
+    if repeats is not None and opt.scattered_check:
+        scattered = (candidates[:2] if given is repeats else
+                     tuple(a.copy() for a in pixel_matches(repeats, min_d, grid, tv, size1, size2, opt.interpolate)[:2]))
+    del given, repeats
     # leading slices of pixel-sized arrays, so that the plane fill's matches (unmatched
     # pixels of image 1) append without copying the millions found (a few tenths of a
     # second on 2000x1500)
@@ -933,7 +967,7 @@ def match_pair_sgm(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config,
     if filled:
         pf = fill_planes(image1_gray, size2, tv, uv1, uv2, X, fill=opt.planes, snap=opt.plane_snap,
                          drop=opt.scattered_check, rims=opt.rim_planes,
-                         repeats=repeats[:2] if repeats is not None and opt.scattered_check else None,
+                         repeats=scattered,
                          start=SearchStart(grid, float(min_d)) if opt.scattered_check else None,
                          gray2=image2_gray if opt.aligned_planes else None)
         n_planes, n_moved, n_scattered = len(pf.uv1), len(pf.moved), len(pf.dropped)
@@ -952,16 +986,14 @@ def match_pair_sgm(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config,
         rows = append_rows(rows, np.full(n_planes, -1, rows.dtype))
     n_dominant = n_restored = 0
     if opt.dominant_planes:
-        candidates = None
-        if repeats is not None and opt.repeat_restore:  # (those on a pixel the plane fill took stay out)
+        if candidates is not None:  # (those on a pixel the plane fill took stay out)
             free = np.ones(size1[::-1], bool)
             free[uv1[:, 1].astype(np.int64), uv1[:, 0].astype(np.int64)] = False
-            c1, c2, cX, c_cells = repeats
+            c1, c2, cX, c_cells = candidates
             keep = free[c1[:, 1].astype(np.int64), c1[:, 0].astype(np.int64)]
             candidates = (c1[keep], c2[keep], cX[keep])
             c_rows = c_cells[keep] // n_cols
-            del free, keep
-        del repeats
+            del free, keep, c1, c2, cX, c_cells
         dm = move_onto_dominant_planes(image1_gray, image2_gray, tv, uv1, uv2, X, candidates=candidates)
         uv2[dm.moved], X[dm.moved] = dm.uv2, dm.xyz
         n_dominant, n_restored = len(dm.moved), len(dm.restored)
@@ -990,7 +1022,7 @@ def match_pair_sgm(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config,
                 "and %d moved onto a wider window's plane, %d filled on plain planes and %d moved onto them, %d on "
                 "plain regions mostly unmatched and on no one plane (or off theirs on no second one, or on the ties at the "
                 "search's first parallax) dropped, %d in islands under the speckle filter's window dropped, %d moved "
-                "onto the largest aligned planes and %d dropped on repeating texture given back on them, %d valid",
+                "onto the largest aligned planes and %d dropped by the left-right or repeat check given back on them, %d valid",
                 "4 full paths" if full else "3 directions", counts["line_pairs"], n_dense, n_half, n_off, n_lr, n_ends,
                 n_flat, n_out, n_col, n_occ, n_car, n_far, n_near, n_coarse, n_rep, n_frame, n_fat, n_fit, n_wide,
                 n_planes, n_moved, n_scattered, n_islands, n_dominant, n_restored, len(uv1))
