@@ -339,6 +339,14 @@ def _beyond_fattening(row, c0, d, tol, reach):
     return False
 
 
+def dropped_estimates(before: np.ndarray, after: np.ndarray, invalid: float) -> np.ndarray:
+    """The estimates a check dropped: ``before`` ((rows, width) float32, the disparities before
+    it; changed in place and returned) where ``after`` no longer holds them, ``invalid``
+    elsewhere (no second pixel-sized array)."""
+    before[~(before > after)] = np.float32(invalid)
+    return before
+
+
 def repeating_drops(drops: np.ndarray, repeat: np.ndarray | None, invalid: float) -> np.ndarray | None:
     """Of the estimates a check dropped, ``drops`` ((rows, width) float32, ``invalid`` where it
     dropped none; changed in place), those on texture that repeats along the lines
@@ -892,7 +900,7 @@ def match_pair_sgm(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config,
         before = disp.copy() if opt.dominant_planes and opt.lr_restore else None
         n_lr = drop_left_right(disp, halves, min_d, num_d, jump, full, min_d - 1.0, textured=~plain)
         if n_lr and before is not None:
-            lr_drops = np.where(before > disp, before, np.float32(min_d - 1.0))
+            lr_drops = dropped_estimates(before, disp, min_d - 1.0)
         del before
     del halves
     n_flat = drop_flat_windows(disp, L1, min_d - 1.0) if opt.flat_check else 0
@@ -922,7 +930,7 @@ def match_pair_sgm(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config,
         # the estimates dropped, for their plain regions' verdict (fill_planes) and the dominant
         # planes (given back where one bears them out)
         if n_rep and before is not None:
-            repeats = np.where(before > disp, before, np.float32(min_d - 1.0))
+            repeats = dropped_estimates(before, disp, min_d - 1.0)
         del before
     n_frame = drop_frame_end_runs(disp, frames, min_d, min_d - 1.0) if opt.frame_check else 0
     n_fat = drop_fattened_cells(disp, min_d - 1.0) if opt.edge_check else 0
