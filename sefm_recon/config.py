@@ -284,6 +284,9 @@ class SgmConfig:
     scattered_check: bool = True  #: drop the matches of large plain regions mostly unmatched whose matches lie on no one plane, or on the ties at the search's first parallax (:mod:`.matching.planes`)
     aligned_planes: bool = True  #: align plain regions' planes by the intensities where their halves agree: kept and filled then, not dropped (:mod:`.matching.plane_align`)
     rim_planes: bool = True  #: fill and move the small plain regions' pixels onto the plane of their rim's matches (:mod:`.matching.planes`)
+    #: fill the large plain regions whose matches were all dropped (on no surface, or on the
+    #: ties) from another region's plane, aligned there by the intensities (:mod:`.matching.planes`)
+    borrowed_planes: bool = True
     #: drop the islands the checks leave under the speckle filter's window (but those moved onto
     #: a plain region's plane), after the plane fill (:func:`.matching.checks.speckle_islands`)
     speckle_after: bool = True

@@ -88,6 +88,8 @@ SGM_ABLATIONS: dict[str, list[str]] = {
     "- matches of plain regions mostly unmatched and on no one plane dropped": ["sgm.scattered_check=false"],
     "- a plane aligned by the intensities kept there where its halves agree": ["sgm.aligned_planes=false"],
     "- small plain regions on the plane of their rim": ["sgm.rim_planes=false"],
+    "- plain regions with no surface of their own filled from another region's aligned plane":
+        ["sgm.borrowed_planes=false"],
     "- islands the checks leave under the speckle window dropped": ["sgm.speckle_after=false"],
     "- matches a period off the largest aligned planes moved onto them": ["sgm.dominant_planes=false"],
     "- estimates on repeating texture given back on those planes": ["sgm.repeat_restore=false"],

@@ -273,6 +273,77 @@ def test_a_region_whose_matches_are_too_sparse_to_align_is_dropped_as_before():
     assert len(out.uv1) == 0 and len(out.moved) == 0
 
 
+def _floor_cut_in_two(matched_left=0.6):
+    """The faint floor cut into two plain regions by a band of strong texture (an object
+    standing on it, columns 150-170 of image 1): the left one ``matched_left`` matched, 90 %
+    of them on the floor (0.3 px noise), the right one 1 % matched at random depths (SGM's
+    ties and noise on a plain surface). ``(image 1, image 2, uv1, uv2, X, right)``, ``right``
+    (N,) bool: the matches of the right region."""
+    one, two, uv1, uv2, X, _ = _plain_floor_scene(right_share=0.9, matched=matched_left)
+    rng = np.random.default_rng(5)
+    one[:, 150:170] = rng.integers(0, 256, (H, 20))
+    left = uv1[:, 0] < 145
+    px = _pixels(step=1, margin=16)
+    px = px[(px[:, 0] > 175) & (rng.random(len(px)) < 0.01)]
+    px2 = px - np.column_stack([rng.uniform(4, 30, len(px)), np.zeros(len(px))])
+    Xr, ok, _ = triangulate(TV.K1, TV.K2, TV.R, TV.t, px, px2)
+    uv1, uv2 = np.concatenate([uv1[left], px[ok]]), np.concatenate([uv2[left], px2[ok]])
+    X = np.concatenate([X[left], Xr[ok]])
+    return one, two, uv1, uv2, X, np.arange(len(uv1)) >= np.count_nonzero(left)
+
+
+def test_a_plain_region_with_no_surface_of_its_own_is_filled_from_the_plane_of_the_floor_beside_it():
+    """The floor's right region holds no surface the matcher found: its matches go. The plane
+    of the left region, aligned on the right one's pixels, converges onto the floor there
+    (the same floor), its halves agree and image 2 under it matches image 1: the right region
+    is filled from it. Without borrowing, or where image 2 shows nothing there (one value),
+    it stays unmatched."""
+    one, two, uv1, uv2, X, right = _floor_cut_in_two()
+    out = fill_planes(one, (W, H), TV, uv1, uv2, X, gray2=two)
+    assert right[out.dropped].all() and np.count_nonzero(right[out.dropped]) > 0.9 * np.count_nonzero(right)
+    filled = np.zeros((H, W), bool)
+    filled[out.uv1[:, 1].astype(int), out.uv1[:, 0].astype(int)] = True
+    assert filled[24:H - 24, 180:W - 24].mean() > 0.95
+    on_right = out.uv1[:, 0] > 170
+    assert np.abs(out.uv1[on_right, 0] - out.uv2[on_right, 0] - _parallax(FLOOR, out.uv1[on_right])).max() < 0.25
+    without = fill_planes(one, (W, H), TV, uv1, uv2, X, gray2=two, borrow=False)
+    assert not (without.uv1[:, 0] > 170).any()
+    np.testing.assert_array_equal(without.dropped, out.dropped)
+    two[:, 150:] = 140  # image 2 shows nothing of the right region
+    out = fill_planes(one, (W, H), TV, uv1, uv2, X, gray2=two)
+    assert not (out.uv1[:, 0] > 170).any()
+
+
+def test_a_borrowed_plane_is_the_start_that_converges_onto_the_surface_and_only_once_converged(monkeypatch):
+    """On the right region of the floor cut in two: from a start 12 px of parallax off, the
+    alignment settles on no surface (its halves or image 2 reject it) and nothing is borrowed;
+    given a start 6 px off as well, that one reaches the floor. With an alignment that only
+    halves the distance each time (still 0.4 px off after the further alignments allowed), the
+    plane is not kept: only a converged alignment is."""
+    import sefm_recon.matching.plane_align as plane_align
+    import sefm_recon.matching.planes as planes
+
+    one, two, uv1, uv2, X, _ = _floor_cut_in_two()
+    labels, stats = planes.plain_regions(one)
+    x0, y0, region, _ = planes._among_plane_matches(labels, stats, labels[H // 2, 250], np.zeros((0, 2)))
+    pose, two = planes._pose(TV), two.astype(np.float32)
+    px = np.column_stack([np.nonzero(region)[1] + x0 + 0.5, np.nonzero(region)[0] + y0 + 0.5])
+
+    def borrowed(*offsets):
+        starts = [FLOOR + np.array([0.0, 0.0, o / F]) for o in offsets]
+        return planes._borrowed_plane(one, two, pose, x0, y0, region, starts, np.random.default_rng(0))
+
+    assert borrowed(12.0) is None
+    abc = borrowed(12.0, 6.0)
+    assert np.abs(_parallax(abc, px) - _parallax(FLOOR, px)).max() < 0.25
+
+    def halfway(images, A, e, uv1, abc):
+        return abc + 0.5 * (plane_align.align_plane(images, A, e, uv1, abc) - abc)
+
+    monkeypatch.setattr(planes, "align_plane", halfway)
+    assert borrowed(6.0) is None
+
+
 def test_an_aligned_floor_is_filled_beyond_its_matches_where_image_2_shows_it_and_not_where_it_is_hidden():
     """Matches on the left half of the floor only; image 2 shows the floor's lower right
     part behind another surface (strong texture of its own). The plane aligned on the left

@@ -40,7 +40,7 @@ import numpy as np
 from numba import njit
 
 __all__ = ["AlignImages", "agreement", "align_images", "align_plane", "halves_agree", "masked_zncc", "normalised",
-           "normalised_region"]
+           "normalised_region", "partners"]
 
 #: Gaussian blurs (px) of the levels the plane is aligned on, coarse to fine: at 4 px the
 #: warp's linearisation holds over the 1-3 px the fitted plane is off; below 2 px the sensor
@@ -176,7 +176,7 @@ def _gradient_along_depth(x, hu, hv, e, gx, gy):
     return out, True
 
 
-def _partners(A: np.ndarray, e: np.ndarray, p: np.ndarray, abc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def partners(A: np.ndarray, e: np.ndarray, p: np.ndarray, abc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The partners (N, 2) the plane ``abc`` gives the pixels ``p`` (N, 3) homogeneous, and
     their derivatives (N, 2) by the inverse depth ``p . abc``; ``q ~ A p + e (p . abc)``."""
     x = p @ A.T + np.outer(p @ abc, e)
@@ -253,8 +253,8 @@ def halves_agree(images: AlignImages, A: np.ndarray, e: np.ndarray, uv1: np.ndar
         lower = uv1[:, axis] < np.median(uv1[:, axis])
         if min(np.count_nonzero(lower), np.count_nonzero(~lower)) < MIN_HALF_PIXELS:
             return False
-        qa = _partners(A, e, p, align_plane(images, A, e, uv1[lower], abc))[0]
-        qb = _partners(A, e, p, align_plane(images, A, e, uv1[~lower], abc))[0]
+        qa = partners(A, e, p, align_plane(images, A, e, uv1[lower], abc))[0]
+        qb = partners(A, e, p, align_plane(images, A, e, uv1[~lower], abc))[0]
         if not np.median(np.linalg.norm(qa - qb, axis=1)) <= AGREE_PX:
             return False
     return True
