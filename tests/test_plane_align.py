@@ -124,6 +124,39 @@ def test_the_halves_of_one_plane_agree_and_those_of_a_fold_or_of_noise_do_not():
         assert not halves_agree(images, A, E, px, align_plane(images, A, E, px, FLOOR))
 
 
+def test_halves_whose_tilts_part_beyond_them_agree_each_on_its_own_pixels_and_a_fold_does_not():
+    """A faint floor seen in two strips 16 px high at its top and bottom (the pixels among a
+    mostly unmatched floor's matches can cluster so): the plane aligned on both is within
+    0.15 px of the truth, but each strip fixes its own tilt so loosely that the strips' planes
+    part by over 1 px across the whole floor, and the halves test fails for most textures.
+    Each strip's plane gives its own pixels the whole plane's partners (``each_own``). A fold
+    of 6 px, a plane on neither half, still fails, as does a pair of noise images."""
+    rows = np.arange(H) + 0.5
+    px = _pixels(step=1)
+    strips = px[(px[:, 1] < 40) | (px[:, 1] > H - 40)]
+    strict = []
+    for seed in range(3):
+        one = _texture(seed, 2.0)
+        two = _view2(one, F * (rows * FLOOR[1] + FLOOR[2]), seed=seed + 7)
+        images = align_images(np.clip(np.rint(one), 0, 255).astype(np.uint8), two, strips)
+        abc = align_plane(images, A, E, strips, FLOOR)
+        assert np.median(np.abs(_parallax(abc, strips) - _parallax(FLOOR, strips))) < 0.15
+        strict.append(halves_agree(images, A, E, strips, abc))
+        assert halves_agree(images, A, E, strips, abc, each_own=True)
+    assert strict.count(False) >= 2
+    one, _ = _floor_pair()
+    px = _pixels()
+    fold = _view2(one.astype(np.float32), np.where(np.arange(H) < H // 2, 10.0, 16.0))
+    images = align_images(one, fold, px)
+    assert not halves_agree(images, A, E, px, align_plane(images, A, E, px, np.array([0.0, 0.0, 13.0 / F])),
+                            each_own=True)
+    for seed in range(3):
+        rng = np.random.default_rng(seed)
+        grey1, grey2 = (np.clip(np.rint(128 + rng.normal(size=(H, W))), 0, 255).astype(np.uint8) for _ in range(2))
+        images = align_images(grey1, grey2, px)
+        assert not halves_agree(images, A, E, px, align_plane(images, A, E, px, FLOOR), each_own=True)
+
+
 def _plain_floor_scene(seed=0, right_share=0.4, matched=0.3, sign=None):
     """Image 1: the faint floor framed by strong texture (its own plain region); image 2 as
     the floor gives it; and matches on ``matched`` of the floor's pixels, ``right_share`` of
@@ -374,8 +407,8 @@ def test_an_aligned_floor_is_filled_beyond_its_matches_where_image_2_shows_it_an
 def test_a_plane_whose_halves_part_among_its_matches_is_judged_again_where_image_2_agrees(monkeypatch):
     """Matches on the floor's left quarter alone. Where the halves test fails on the pixels
     among them (here forced: any set of at most that many pixels), the plane is judged again
-    over those and the floor's pixels where image 2 under it agrees, four times as many: its
-    halves agree there and the floor is filled. Where image 2 bears the plane out nowhere
+    over those and the floor's pixels where image 2 under it agrees, four times as many (each
+    half then also on its own pixels): its halves agree there and the floor is filled. Where image 2 bears the plane out nowhere
     (one value), there is nothing wider to judge it on, and nothing is filled."""
     import sefm_recon.matching.planes as planes
 
@@ -386,13 +419,17 @@ def test_a_plane_whose_halves_part_among_its_matches_is_judged_again_where_image
     honest = planes.halves_agree
     assert len(fill_planes(one, (W, H), TV, uv1, uv2, X, gray2=two).uv1) > 3 * len(uv1)  # (agreeing at once)
 
-    def halves(images, A, e, px, abc):
+    owns = []
+
+    def halves(images, A, e, px, abc, **kw):
         asked.append(len(px))
-        return len(px) > W / 3 * H and honest(images, A, e, px, abc)
+        owns.append(kw.get("each_own", False))
+        return len(px) > W / 3 * H and honest(images, A, e, px, abc, **kw)
 
     monkeypatch.setattr(planes, "halves_agree", halves)
     out = fill_planes(one, (W, H), TV, uv1, uv2, X, gray2=two)
     assert len(asked) == 2 and asked[0] < W / 3 * H < asked[1]
+    assert owns == [False, True]  # (each half on its own pixels at the second asking alone)
     filled = np.zeros((H, W), bool)
     filled[out.uv1[:, 1].astype(int), out.uv1[:, 0].astype(int)] = True
     assert filled[24:H - 24, W // 2:W - 24].mean() > 0.95

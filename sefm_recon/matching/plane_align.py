@@ -39,8 +39,8 @@ import cv2
 import numpy as np
 from numba import njit
 
-__all__ = ["AlignImages", "agreement", "align_images", "align_plane", "halves_agree", "masked_zncc", "normalised",
-           "normalised_region", "partners"]
+__all__ = ["AlignImages", "agreement", "align_images", "align_plane", "halves_agree", "masked_zncc", "median_apart",
+           "normalised", "normalised_region"]
 
 #: Gaussian blurs (px) of the levels the plane is aligned on, coarse to fine: at 4 px the
 #: warp's linearisation holds over the 1-3 px the fitted plane is off; below 2 px the sensor
@@ -176,7 +176,7 @@ def _gradient_along_depth(x, hu, hv, e, gx, gy):
     return out, True
 
 
-def partners(A: np.ndarray, e: np.ndarray, p: np.ndarray, abc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _partners(A: np.ndarray, e: np.ndarray, p: np.ndarray, abc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The partners (N, 2) the plane ``abc`` gives the pixels ``p`` (N, 3) homogeneous, and
     their derivatives (N, 2) by the inverse depth ``p . abc``; ``q ~ A p + e (p . abc)``."""
     x = p @ A.T + np.outer(p @ abc, e)
@@ -244,18 +244,34 @@ def align_plane(images: AlignImages, A: np.ndarray, e: np.ndarray, uv1: np.ndarr
     return cur
 
 
-def halves_agree(images: AlignImages, A: np.ndarray, e: np.ndarray, uv1: np.ndarray, abc: np.ndarray) -> bool:
+def median_apart(A: np.ndarray, e: np.ndarray, p: np.ndarray, one: np.ndarray, two: np.ndarray) -> float:
+    """The median distance (px) between the partners the planes ``one`` and ``two`` give the
+    pixels ``p`` (N, 3) homogeneous."""
+    return float(np.median(np.linalg.norm(_partners(A, e, p, one)[0] - _partners(A, e, p, two)[0], axis=1)))
+
+
+def halves_agree(images: AlignImages, A: np.ndarray, e: np.ndarray, uv1: np.ndarray, abc: np.ndarray, *,
+                 each_own: bool = False) -> bool:
     """Whether the plane ``abc`` aligned (:func:`align_plane`) on each half of the pixels ``uv1``
     (N, 2), split at their median row and at their median column, gives the same partners
-    (:data:`AGREE_PX`) over all of them: one planar surface."""
+    (:data:`AGREE_PX`) over all of them: one planar surface. ``each_own``: halves whose planes
+    part over all the pixels still agree where each half's plane gives its own pixels the
+    partners ``abc`` gives them: a half's tilt, fixed by a faint texture over its own extent
+    alone, can carry its partners apart far beyond it (a floor's far half, at a grazing
+    angle). The halves of a fold part from the whole plane on their own pixels where its
+    step is over about three times :data:`AGREE_PX` (a step of 6 px fails, one of 3 px
+    passes: the plane a median of 1 px or less from each half)."""
     p = np.column_stack([uv1, np.ones(len(uv1))])
     for axis in (1, 0):
         lower = uv1[:, axis] < np.median(uv1[:, axis])
         if min(np.count_nonzero(lower), np.count_nonzero(~lower)) < MIN_HALF_PIXELS:
             return False
-        qa = partners(A, e, p, align_plane(images, A, e, uv1[lower], abc))[0]
-        qb = partners(A, e, p, align_plane(images, A, e, uv1[~lower], abc))[0]
-        if not np.median(np.linalg.norm(qa - qb, axis=1)) <= AGREE_PX:
+        a = align_plane(images, A, e, uv1[lower], abc)
+        b = align_plane(images, A, e, uv1[~lower], abc)
+        if median_apart(A, e, p, a, b) <= AGREE_PX:
+            continue
+        if not (each_own and median_apart(A, e, p[lower], a, abc) <= AGREE_PX
+                and median_apart(A, e, p[~lower], b, abc) <= AGREE_PX):
             return False
     return True
 
