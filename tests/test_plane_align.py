@@ -367,7 +367,7 @@ def test_a_borrowed_plane_is_the_start_that_converges_onto_the_surface_and_only_
         return planes._borrowed_plane(one, two, pose, x0, y0, region, starts, np.random.default_rng(0))
 
     assert borrowed(12.0) is None
-    abc = borrowed(12.0, 6.0)
+    abc, _ = borrowed(12.0, 6.0)
     assert np.abs(_parallax(abc, px) - _parallax(FLOOR, px)).max() < 0.25
 
     def halfway(images, A, e, uv1, abc):
@@ -408,8 +408,9 @@ def test_a_plane_whose_halves_part_among_its_matches_is_judged_again_where_image
     """Matches on the floor's left quarter alone. Where the halves test fails on the pixels
     among them (here forced: any set of at most that many pixels), the plane is judged again
     over those and the floor's pixels where image 2 under it agrees, four times as many (each
-    half then also on its own pixels): its halves agree there and the floor is filled. Where image 2 bears the plane out nowhere
-    (one value), there is nothing wider to judge it on, and nothing is filled."""
+    half then also on its own pixels): its halves agree there and the floor is filled. Where
+    image 2 bears the plane out nowhere (one value), there is nothing wider to judge it on,
+    and nothing is filled."""
     import sefm_recon.matching.planes as planes
 
     one, two, uv1, uv2, X, _ = _plain_floor_scene()

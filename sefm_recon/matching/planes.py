@@ -811,17 +811,23 @@ MAX_ALIGN_PIXELS = 40000
 WIDEN_AGREEING = 2.0
 
 
-def _aligned_on(gray1: np.ndarray, gray2: np.ndarray, A: np.ndarray, e: np.ndarray, x0: int, y0: int,
-                mask: np.ndarray, abc: np.ndarray, rng: np.random.Generator, *,
-                each_own: bool = False) -> tuple[np.ndarray, bool]:
-    """The plane ``abc`` aligned on the pixels of ``mask`` (h, w) bool (the box at ``(x0, y0)``;
-    at most :data:`MAX_ALIGN_PIXELS`, a seeded subset) and whether its halves agree there
-    (:func:`.plane_align.halves_agree`, ``each_own`` passed on)."""
+def _align_pixels(mask: np.ndarray, x0: int, y0: int, rng: np.random.Generator) -> np.ndarray:
+    """The pixels of ``mask`` (h, w) bool (the box at ``(x0, y0)``) a plane is aligned on: at most
+    :data:`MAX_ALIGN_PIXELS`, a seeded subset; (N, 2) COLMAP positions."""
     ys, xs = np.nonzero(mask)
     if len(ys) > MAX_ALIGN_PIXELS:
         pick = np.sort(rng.choice(len(ys), MAX_ALIGN_PIXELS, replace=False))
         ys, xs = ys[pick], xs[pick]
-    px = np.column_stack([xs + x0 + 0.5, ys + y0 + 0.5])
+    return np.column_stack([xs + x0 + 0.5, ys + y0 + 0.5])
+
+
+def _aligned_on(gray1: np.ndarray, gray2: np.ndarray, A: np.ndarray, e: np.ndarray, x0: int, y0: int,
+                mask: np.ndarray, abc: np.ndarray, rng: np.random.Generator, *,
+                each_own: bool = False) -> tuple[np.ndarray, bool]:
+    """The plane ``abc`` aligned on the pixels of ``mask`` (h, w) bool (the box at ``(x0, y0)``,
+    :func:`_align_pixels`) and whether its halves agree there (:func:`.plane_align.halves_agree`,
+    ``each_own`` passed on)."""
+    px = _align_pixels(mask, x0, y0, rng)
     images = align_images(gray1, gray2, px)
     aligned = align_plane(images, A, e, px, abc)
     return aligned, halves_agree(images, A, e, px, aligned, each_own=each_own)
@@ -875,26 +881,23 @@ MAX_REALIGN = 3
 
 
 def _borrowed_plane(gray1: np.ndarray, gray2: np.ndarray, pose: _Pose, x0: int, y0: int, region: np.ndarray,
-                    starts: list, rng: np.random.Generator) -> np.ndarray | None:
+                    starts: list, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray] | None:
     """The plane of ``starts`` (each (3,), :func:`_inverse_depth_plane`) that, aligned on the
-    pixels of ``region`` ((h, w) bool, the box at ``(x0, y0)``; at most :data:`MAX_ALIGN_PIXELS`,
-    a seeded subset) until it converges (:data:`CONVERGED_PX`), has halves that agree
-    (:func:`.plane_align.halves_agree`) and image 2 under it matching image 1 best there (the
-    median of :func:`.plane_align.agreement`, at least :data:`.plane_align.ALIGNED_ZNCC`);
-    None where none does. Starts within :data:`.plane_align.AGREE_PX` of one tried are
-    skipped. ``gray1``: (H, W) uint8; ``gray2``: (H2, W2) float32."""
-    ys, xs = np.nonzero(region)
-    if len(ys) < 2 * MIN_HALF_PIXELS:
+    pixels of ``region`` ((h, w) bool, the box at ``(x0, y0)``, :func:`_align_pixels`) until it
+    converges (:data:`CONVERGED_PX`), has halves that agree (:func:`.plane_align.halves_agree`)
+    and image 2 under it matching image 1 best there (the median of
+    :func:`.plane_align.agreement`, at least :data:`.plane_align.ALIGNED_ZNCC`), with that
+    agreement over the region ((h, w) float32); None where none does. Starts within
+    :data:`.plane_align.AGREE_PX` of one tried are skipped. ``gray1``: (H, W) uint8;
+    ``gray2``: (H2, W2) float32."""
+    if np.count_nonzero(region) < 2 * MIN_HALF_PIXELS:
         return None
-    if len(ys) > MAX_ALIGN_PIXELS:
-        pick = np.sort(rng.choice(len(ys), MAX_ALIGN_PIXELS, replace=False))
-        ys, xs = ys[pick], xs[pick]
-    px = np.column_stack([xs + x0 + 0.5, ys + y0 + 0.5])
+    px = _align_pixels(region, x0, y0, rng)
     p = np.column_stack([px, np.ones(len(px))])
     A, e = pose.K2 @ pose.R @ pose.K1inv, pose.K2 @ pose.t
     images = align_images(gray1, gray2, px)
     image1 = normalised_region(gray1, x0, y0, region)
-    best, best_z, tried = None, ALIGNED_ZNCC, []
+    best, best_z, tried = None, ALIGNED_ZNCC, []  # (best: the plane and its agreement)
     for start in starts:
         if any(median_apart(A, e, p, start, t) <= AGREE_PX for t in tried):
             continue
@@ -912,7 +915,7 @@ def _borrowed_plane(gray1: np.ndarray, gray2: np.ndarray, pose: _Pose, x0: int, 
         z, = agreement(gray1, gray2, _homography(pose, cur), x0, y0, region, (region,), image1=image1)
         med = _median_over(z, region)
         if med >= best_z:
-            best, best_z = cur, med
+            best, best_z = (cur, z), med
     return best
 
 
@@ -1075,10 +1078,10 @@ def fill_planes(gray1: np.ndarray, size2: tuple[int, int], tv, uv1: np.ndarray, 
         starts = [abc for _, abc in sorted(known, key=lambda a: -a[0])]  # (the largest surfaces first)
         for k in orphans:
             x0, y0, region, _ = _among_plane_matches(labels, stats, k, np.zeros((0, 2)))
-            abc = _borrowed_plane(gray1, image2(), pose, x0, y0, region, starts, np.random.default_rng(seed))
-            if abc is None:
+            borrowed = _borrowed_plane(gray1, image2(), pose, x0, y0, region, starts, np.random.default_rng(seed))
+            if borrowed is None:
                 continue
-            z, = agreement(gray1, image2(), _homography(pose, abc), x0, y0, region, (region,))
+            abc, z = borrowed
             ys, xs = np.nonzero(region & (z >= FILL_ZNCC))  # (its matches all dropped: every pixel unmatched)
             p1, p2 = _fill_partners(tv, pose, abc, xs, ys, x0, y0, size2)
             add1.append(p1)
