@@ -653,11 +653,9 @@ def _rim_planes(gray1: np.ndarray, tv, pose: _Pose, labels: np.ndarray, stats: n
             on[uv1[i, 1].astype(np.int64) - ya, uv1[i, 0].astype(np.int64) - xa] = True
         ys, xs = np.nonzero(region & (crop < 0) & _enclosed(on))
         if len(ys):
-            p1 = np.column_stack([xs + xa + 0.5, ys + ya + 0.5])
-            p2, _, ok = _on_plane(tv, p1, plane)
-            ok &= (p2[:, 0] >= 0) & (p2[:, 0] < size2[0]) & (p2[:, 1] >= 0) & (p2[:, 1] < size2[1])
-            add1.append(p1[ok])
-            add2.append(p2[ok])
+            p1, p2 = _fill_partners(tv, pose, plane, xs, ys, xa, ya, size2)
+            add1.append(p1)
+            add2.append(p2)
     return add1, add2, moved, planes
 
 
