@@ -509,27 +509,3 @@ def test_gradient_along_depth_is_the_warped_gradient_through_the_jacobian():
     flat = H.copy()
     flat[:, 1] = flat[:, 0]  # (u and v move the partner alike: no inverse)
     assert not _gradient_along_depth(p @ flat.T, flat[:, 0].copy(), flat[:, 1].copy(), e, gx, gy)[1]
-
-
-def test_the_fill_beyond_the_matches_needs_image_2_to_agree_best_at_the_plane_itself():
-    """A smooth floor (blotches 12 px wide) correlates under planes several px off its own:
-    0.83 (median) under the planes 5 px nearer and farther, over the fill's bar of 0.8. Image 2
-    agrees best under the floor's own plane, and with a plane 5 px off (a second surface's,
-    carried onto the floor) better under the plane 6 px from it towards the floor's."""
-    from sefm_recon.matching.plane_align import FILL_ZNCC
-    from sefm_recon.matching.planes import _agreement_peaks, _pose
-
-    smooth = _texture(0, 3.0, blur=12.0)
-    rows = np.arange(H) + 0.5
-    two = _view2(smooth, F * (rows * FLOOR[1] + FLOOR[2])).astype(np.float32)
-    one = np.clip(np.rint(smooth), 0, 255).astype(np.uint8)
-    region = np.zeros((H, W), bool)
-    region[16:H - 16, 16:W - 16] = True
-    pose = _pose(TV)
-    for abc, peaks in ((FLOOR, True), (FLOOR + [0, 0, 5.0 / F], False), (FLOOR - [0, 0, 5.0 / F], False)):
-        H12 = A + np.outer(E, abc)
-        z, = agreement(one, two, H12 / H12[2, 2], 0, 0, region, (region,))
-        assert np.nanmedian(z) > FILL_ZNCC  # (the bar alone would fill with it)
-        assert _agreement_peaks(one, two, pose, abc, 0, 0, region, region) == peaks
-    # (an empty mask: nothing to judge, nothing withheld)
-    assert _agreement_peaks(one, two, pose, FLOOR, 0, 0, region, np.zeros_like(region))

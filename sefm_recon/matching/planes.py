@@ -725,40 +725,6 @@ def _agreeing(gray1: np.ndarray, gray2: np.ndarray, pose: _Pose, abc: np.ndarray
     return beyond & (z_beyond >= FILL_ZNCC), z_region
 
 
-#: The fill beyond a plane's matches (:func:`_agreeing`) is that plane's only where image 2
-#: under it agrees there better than under the planes whose partners lie this many px nearer
-#: and farther along the lines (median over those pixels, :func:`_agreement_peaks`): twice the
-#: 3 px band of a gross error, so that it fails where image 2 agrees best with a plane more
-#: than 3 px off (the peak nearer the plane 6 px on). A smooth plain surface correlates over
-#: a broad range of planes, so that a region holding two surfaces, aligned on one, reached the
-#: fill's bar on the other: forward seed 26's floor under the plane of a pillar's face
-#: standing on it (one plain region), 8,948 pixels 97 % more than 3 px off (4.7 px, median),
-#: image 2 agreeing at 0.907 under that plane against 0.952 under the plane 6 px on.
-PEAK_PX = 6.0
-
-
-def _agreement_peaks(gray1: np.ndarray, gray2: np.ndarray, pose: _Pose, abc: np.ndarray, x0: int, y0: int,
-                     region: np.ndarray, mask: np.ndarray) -> bool:
-    """Whether image 2 under the plane ``abc`` agrees with image 1 over ``mask`` ((h, w) bool,
-    within ``region``, the box at ``(x0, y0)``; :func:`.plane_align.agreement` over the mask's
-    pixels) better than under the planes ``abc * (1 +- eps)`` whose partners lie
-    :data:`PEAK_PX` px from its there (the median over the mask, each side); an empty mask
-    passes. ``gray1``: (H, W) uint8; ``gray2``: (H2, W2) float32."""
-    ys, xs = np.nonzero(mask)
-    if len(ys) == 0:
-        return True
-    p1 = np.column_stack([xs + x0 + 0.5, ys + y0 + 0.5]).reshape(-1, 1, 2)
-    step = 0.01  # (the partners move linearly with a small change of the plane's scale)
-    moved = np.median(np.linalg.norm(cv2.perspectiveTransform(p1, _homography(pose, abc * (1 + step)))
-                                     - cv2.perspectiveTransform(p1, _homography(pose, abc)), axis=2))
-    if not moved > 0:
-        return True
-    eps = step * PEAK_PX / moved
-    z0, z_near, z_far = (_median_over(agreement(gray1, gray2, _homography(pose, a), x0, y0, region, (mask,))[0], mask)
-                         for a in (abc, abc * (1 + eps), abc * (1 - eps)))
-    return bool(z0 > z_near and z0 > z_far)
-
-
 def _at_ties(start: SearchStart, tv, uv1: np.ndarray, uv2: np.ndarray) -> bool:
     """Whether over half of the matches ``uv1``, ``uv2`` (N, 2) lie within :data:`TIE_COLUMNS`
     of the first parallax searched (``start``)."""
@@ -968,8 +934,7 @@ def fill_planes(gray1: np.ndarray, size2: tuple[int, int], tv, uv1: np.ndarray, 
                 seed: int = 0) -> PlaneFill:
     """Partners for the unmatched pixels of image 1's large plain regions whose matches lie on
     one plane, or whose plane the intensities align (``fill``: among those matches, and for an
-    aligned plane beyond them where image 2 under it agrees, :func:`_agreeing`, best at the
-    plane itself, :func:`_agreement_peaks`), for
+    aligned plane beyond them where image 2 under it agrees, :func:`_agreeing`), for
     the matches without signal of the regions that are one plane
     all through (``snap``, :data:`SNAP_PX`) and those 1-3 px off an aligned plane where image
     2 under it agrees (:data:`.plane_align.AGREE_PX`, :data:`RIM_SNAP_PX`), and the matches of
@@ -1095,9 +1060,6 @@ def fill_planes(gray1: np.ndarray, size2: tuple[int, int], tv, uv1: np.ndarray, 
                 abc = aligned
         if aligned is not None:  # an aligned plane also beyond its matches, where image 2 under it agrees
             agree, z = _agreeing(gray1, image2(), pose, abc, x0, y0, region, among)
-            agree &= unmatched
-            if not _agreement_peaks(gray1, image2(), pose, abc, x0, y0, region, agree):
-                agree[:] = False  # (another surface, that a smooth plain face lets the plane reach)
             ys, xs = np.nonzero(unmatched & (among | agree))
             if snap and not few:  # (a mostly unmatched region's matches near it moved above)
                 near = _noise_about(pose, uv1[idx], uv2[idx], X[idx, 2], abc, x0, y0, region.shape, z)
