@@ -287,6 +287,9 @@ class SgmConfig:
     #: fill the large plain regions whose matches were all dropped (on no surface, or on the
     #: ties) from another region's plane, aligned there by the intensities (:mod:`.matching.planes`)
     borrowed_planes: bool = True
+    #: keep a second surface of a mostly unmatched plain region, whose matches lie on one
+    #: homography that image 2 bears out better, apart from the region's aligned plane (:mod:`.matching.planes`)
+    two_surfaces: bool = True
     #: drop the islands the checks leave under the speckle filter's window (but those moved onto
     #: a plain region's plane), after the plane fill (:func:`.matching.checks.speckle_islands`)
     speckle_after: bool = True

@@ -90,6 +90,7 @@ SGM_ABLATIONS: dict[str, list[str]] = {
     "- small plain regions on the plane of their rim": ["sgm.rim_planes=false"],
     "- plain regions with no surface of their own filled from another region's aligned plane":
         ["sgm.borrowed_planes=false"],
+    "- a second surface beside a plain region's aligned plane kept apart from it": ["sgm.two_surfaces=false"],
     "- islands the checks leave under the speckle window dropped": ["sgm.speckle_after=false"],
     "- matches a period off the largest aligned planes moved onto them": ["sgm.dominant_planes=false"],
     "- estimates on repeating texture given back on those planes": ["sgm.repeat_restore=false"],

@@ -489,6 +489,68 @@ def test_an_object_in_front_of_an_aligned_floor_keeps_its_matches():
     assert gone[on_box].all()
 
 
+#: The row where the floor of the test below ends, before a wall farther back.
+JOIN = 120
+#: The wall's parallax, px: farther than the floor's far end (8-12 px there).
+WALL_PAR = 6.0
+
+
+def _wall_parallax(uv):
+    return np.where(uv[:, 1] < JOIN, WALL_PAR, _parallax(FLOOR, uv))
+
+
+def _wall_and_floor(seed=0):
+    """One plain region holding two surfaces with no intensity edge between them: a wall above
+    row ``JOIN`` (parallax ``WALL_PAR``) and the floor below it, each its own faint texture
+    blended over 8 rows. A third of its pixels matched: the wall's 95 % right (0.3 px of noise),
+    the floor's 60 %, the rest 2-8 px off either way (SGM on a floor fainter than the wall).
+    Returns the images, the matches, their points, errors (px) and which lie on the wall."""
+    rng = np.random.default_rng(seed)
+    blend = np.clip((np.arange(H) - (JOIN - 4)) / 8.0, 0, 1)[:, None]
+    one = _texture(seed, 3.0) * (1 - blend) + _texture(seed + 7, 3.0) * blend
+    rows = np.arange(H) + 0.5
+    two = _view2(one, np.where(rows < JOIN, WALL_PAR, F * (rows * FLOOR[1] + FLOOR[2])))
+    one = np.clip(np.rint(one), 0, 255).astype(np.uint8)
+    frame = np.ones((H, W), bool)
+    frame[12:H - 12, 12:W - 12] = False
+    one[frame] = rng.integers(0, 256, np.count_nonzero(frame))
+    px = _pixels(step=1, margin=16)
+    px = px[rng.random(len(px)) < 0.3]
+    wall = px[:, 1] < JOIN
+    right = rng.random(len(px)) < np.where(wall, 0.95, 0.6)
+    wrong = rng.choice([-1, 1], len(px)) * rng.uniform(2, 8, len(px))
+    err = np.where(right, rng.normal(scale=0.3, size=len(px)), wrong)
+    uv2 = px - np.column_stack([_wall_parallax(px) + err, np.zeros(len(px))])
+    X, ok, _ = triangulate(TV.K1, TV.K2, TV.R, TV.t, px, uv2)
+    return one, two, px[ok], uv2[ok], X[ok], np.abs(err[ok]), wall[ok]
+
+
+def test_a_second_surface_in_an_aligned_planes_region_keeps_its_matches_and_takes_none_of_its_fill():
+    """Under half of the region's matches lie on one plane (the wall's), which aligns: alone,
+    it drops the floor's right matches as noise about it and fills floor pixels with its own
+    partners. The floor's matches off it lie on one homography that image 2 bears out better
+    there: they stay, and the wall's plane fills the wall alone (up to the few rows where
+    the pixels nearest to each surface's matches meet)."""
+    one, two, uv1, uv2, X, err, wall = _wall_and_floor()
+    floor_right = ~wall & (err <= 1.0)  # (0.3 px of noise; the wrong ones 2-8 px off)
+
+    def run(two_surfaces):
+        out = fill_planes(one, (W, H), TV, uv1, uv2, X, gray2=two, two=two_surfaces)
+        gone = np.zeros(len(uv1), bool)
+        gone[out.dropped] = True
+        off = np.abs(out.uv1[:, 0] - out.uv2[:, 0] - _wall_parallax(out.uv1))
+        return gone, out.uv1, off
+
+    gone, filled, off = run(False)
+    assert gone[floor_right].mean() > 0.9 and np.count_nonzero(off > 1) > 500
+    gone, filled, off = run(True)
+    assert not gone[floor_right].any() and not gone[wall & (err <= 1.0)].any()
+    assert gone[~wall & (err > 3.1)].mean() > 0.5  # (those off the floor's homography too)
+    on_wall = filled[:, 1] < JOIN
+    assert on_wall.sum() > 15000 and off[on_wall].max() < 0.3
+    assert (filled[~on_wall, 1] < JOIN + 8).all()
+
+
 def test_gradient_along_depth_is_the_warped_gradient_through_the_jacobian():
     """Image 2's gradient along the partners' move by depth: the warped image's gradient through
     the inverse of the warp's Jacobian, dotted with the partner's derivative by depth (written

@@ -975,6 +975,7 @@ def match_pair_sgm(img1: np.ndarray, img2: np.ndarray, tv: TwoView, cfg: Config,
     if filled:
         pf = fill_planes(image1_gray, size2, tv, uv1, uv2, X, fill=opt.planes, snap=opt.plane_snap,
                          drop=opt.scattered_check, rims=opt.rim_planes, borrow=opt.borrowed_planes,
+                         two=opt.two_surfaces,
                          repeats=scattered,
                          start=SearchStart(grid, float(min_d)) if opt.scattered_check else None,
                          gray2=image2_gray if opt.aligned_planes else None)
