@@ -365,8 +365,13 @@ def _homography_support(uv1: np.ndarray, uv2: np.ndarray, idx: np.ndarray, rng: 
     H, _ = cv2.findHomography(uv1[fit], uv2[fit], cv2.RANSAC, 1.0)
     if H is None:
         return None, np.zeros(len(idx), bool)
-    pred = cv2.perspectiveTransform(uv1[idx].reshape(-1, 1, 2), H).reshape(-1, 2)
-    return H, np.linalg.norm(pred - uv2[idx], axis=1) <= 1.0
+    return H, _homography_distance(H, uv1[idx], uv2[idx]) <= 1.0
+
+
+def _homography_distance(H: np.ndarray, uv1: np.ndarray, uv2: np.ndarray) -> np.ndarray:
+    """(N,) px: how far each partner ``uv2`` (N, 2) lies from where the homography ``H`` (3, 3)
+    takes its pixel ``uv1`` (N, 2) (COLMAP positions)."""
+    return np.linalg.norm(cv2.perspectiveTransform(uv1.reshape(-1, 1, 2), H).reshape(-1, 2) - uv2, axis=1)
 
 
 def _plane_support(pose: _Pose, uv1: np.ndarray, uv2: np.ndarray, z: np.ndarray, idx: np.ndarray,
@@ -711,7 +716,7 @@ def _nearer_to(these: np.ndarray, those: np.ndarray, shape: tuple[int, int]) -> 
 
 def _second_surface(gray1: np.ndarray, gray2: np.ndarray, pose: _Pose, labels: np.ndarray, stats: np.ndarray,
                     k: int, uv1: np.ndarray, uv2: np.ndarray, idx: np.ndarray, abc: np.ndarray,
-                    on_plane: np.ndarray, candidates: np.ndarray, support: float,
+                    to_plane: np.ndarray, candidates: np.ndarray, support: float,
                     seed: int) -> tuple[np.ndarray, np.ndarray] | None:
     """A second surface in mostly unmatched region ``k`` beside its aligned plane ``abc``
     (the module's docstring): ``(theirs, near)``, the pixels of image 1 nearer to its matches
@@ -726,8 +731,8 @@ def _second_surface(gray1: np.ndarray, gray2: np.ndarray, pose: _Pose, labels: n
     image 2 under the plane agrees with image 1 there as well as under the surface (the
     median over its pixels where either agrees, :data:`.plane_align.FILL_ZNCC`: elsewhere
     neither says anything, hidden in view 2 or beyond it; at least one window's pixels,
-    :data:`.plane_align.NORM_RADIUS`). ``on_plane``: (len(idx),) bool, the
-    matches within :data:`RIM_SNAP_PX` of the plane; ``gray1``: (H, W) uint8; ``gray2``:
+    :data:`.plane_align.NORM_RADIUS`). ``to_plane``: (len(idx),) px, the matches' distances
+    from the plane (:func:`_plane_distance`); ``gray1``: (H, W) uint8; ``gray2``:
     (H2, W2) float32; ``labels``, ``stats``: :func:`plain_regions`; ``uv1``, ``uv2``: (N, 2)
     the matches.
 
@@ -747,11 +752,9 @@ def _second_surface(gray1: np.ndarray, gray2: np.ndarray, pose: _Pose, labels: n
     if (H_off is None or np.mean(on_second) < min(MAX_SCATTERED_SUPPORT, support)
             or _same_plane(_homography(pose, abc), H_off, uv1[off])):
         return None
-    to_plane = _plane_distance(pose, uv1[idx], uv2[idx], abc)
-    to_second = np.linalg.norm(cv2.perspectiveTransform(uv1[idx].reshape(-1, 1, 2), H_off).reshape(-1, 2)
-                               - uv2[idx], axis=1)
+    to_second = _homography_distance(H_off, uv1[idx], uv2[idx])
     near = (to_second <= RIM_SNAP_PX) & (to_second < to_plane)
-    theirs = _nearer_to(uv1[idx[near]], uv1[idx[on_plane & ~near]], labels.shape)
+    theirs = _nearer_to(uv1[idx[near]], uv1[idx[(to_plane <= RIM_SNAP_PX) & ~near]], labels.shape)
     x0, y0, bw, bh = stats[k, :4]
     region = labels[y0:y0 + bh, x0:x0 + bw] == k
     part = region & theirs[y0:y0 + bh, x0:x0 + bw]
@@ -1094,13 +1097,14 @@ def fill_planes(gray1: np.ndarray, size2: tuple[int, int], tv, uv1: np.ndarray, 
         if few and aligned is not None:
             # one plane under the region's noise: its matches near it move onto it, the rest go,
             # but a surface in front of the plane, off it, stays, and so does a second surface
-            on_plane = _plane_distance(pose, uv1[idx], uv2[idx], abc) <= RIM_SNAP_PX
+            to_plane = _plane_distance(pose, uv1[idx], uv2[idx], abc)
+            on_plane = to_plane <= RIM_SNAP_PX
             keep = on_plane.copy()
             if drop:
                 off = np.flatnonzero(~on_plane)
                 keep[off] = _nearer_surface(gray1, image2(), pose, abc, labels, stats, k, uv1[idx[off]],
                                             X[idx[off], 2])
-            second = _second_surface(gray1, image2(), pose, labels, stats, k, uv1, uv2, idx, abc, on_plane, ~keep,
+            second = _second_surface(gray1, image2(), pose, labels, stats, k, uv1, uv2, idx, abc, to_plane, ~keep,
                                      support, seed) if two else None
             if second is not None:  # (its matches near it, in its part, stay as SGM left them)
                 theirs, near = second
