@@ -245,7 +245,7 @@ class SgmConfig:
     """Switches of the default matcher's stages (``dense.method = "sgm"``), for the ablation:
     internal, only the evaluation and the tests change them (:mod:`.matching.sgm`)."""
 
-    full_paths: bool = True  #: 4 full paths where the cost volume fits (false: always OpenCV's 3 directions)
+    full_paths: bool = True  #: 4 full paths, in strips of rows where the volume does not fit (false: 3 directions)
     half_fill: bool = True  #: give the cells SGM leaves without an estimate the estimate of SGM at half size
     half_check: bool = True  #: drop the estimates SGM at half size, sure there, puts over 3 columns away
     lr_check: bool = True  #: drop the estimates a second SGM, from image 2 at half size, puts over a column away

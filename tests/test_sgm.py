@@ -496,6 +496,36 @@ def test_the_speckle_filter_drops_islands_under_a_share_of_the_view(monkeypatch)
     assert np.mean(np.abs(d[patch] - 40) < 1) > 0.3
 
 
+def test_four_paths_run_over_strips_of_rows_where_their_volume_does_not_fit(monkeypatch):
+    # the island scenes with a budget of 81 rows: strips of 17 rows kept (32 more above and
+    # below), 24 of them. The four paths still run, the estimates are those of the whole run
+    # (measured: 99.98 % within a column, the island found on 38 % and 64 % of its cells both
+    # ways) and the speckle filter judges an island whole across the strips it spans (30 px:
+    # 3 strips): the 30 px island dropped and the 48 px one kept, as in one run.
+    from sefm_recon.matching import stereo_sgbm as sgm
+
+    for side, kept in ((30, False), (48, True)):
+        L1, L2, patch = _island(side)
+        whole, full = sgm.sgbm_disparity(L1, L2, 0, 64, 10, speckle=False)
+        assert full
+        monkeypatch.setattr(sgm, "MAX_FULL_VOLUME", (17 + 2 * sgm.STRIP_MARGIN) * L1.shape[1] * 64)
+        assert sgm.strip_rows(L1.shape[1], 64) == 17
+        striped, full = sgm.sgbm_disparity(L1, L2, 0, 64, 10, speckle=False)
+        assert full
+        both = (whole >= 0) & (striped >= 0)
+        assert both.mean() > 0.85 and np.mean(np.abs(whole - striped)[both] <= 1) > 0.99
+        found = np.mean(np.abs(striped[patch] - 40) < 1)
+        assert found > 0.3 and abs(found - np.mean(np.abs(whole[patch] - 40) < 1)) < 0.02
+        d, _ = sgm.sgbm_disparity(L1, L2, 0, 64, 10)
+        assert np.mean(np.abs(d[50:120, 100:600] - 20) < 1) > 0.99
+        assert np.mean(np.abs(d[patch] - 40) < 1) > 0.3 if kept else np.all(d[patch] < 39)
+        monkeypatch.undo()
+    # a budget under the margins' rows: OpenCV's 3 directions
+    monkeypatch.setattr(sgm, "MAX_FULL_VOLUME", 2 * sgm.STRIP_MARGIN * L1.shape[1] * 64)
+    assert sgm.strip_rows(L1.shape[1], 64) == 0 and not sgm.four_paths_fit(L1, 64)
+    assert not sgm.sgbm_disparity(L1, L2, 0, 64, 10)[1]
+
+
 @pytest.mark.parametrize("bad_rows, within_px", [(slice(119, 122), 1.0), (slice(117, 124), 3.0)])
 def test_sgm_aggregation_across_lines_repairs_lines_without_signal(bad_rows, within_px):
     # rows of image 2 replaced by noise: on these lines alone no matcher finds the

@@ -44,8 +44,8 @@ from .periodic import ONCE_ZNCC, REPEAT_ZNCC, drop_repeating, repeat_score
 from .planes import SearchStart, fill_planes
 from .readback import pixel_matches
 from .sefm import DenseMatches, depth_range
-from .stereo_sgbm import (BLOCK, JUMP_PENALTY, LR_MAX_DIFF, STEP_PENALTY, num_disparities, sgbm_disparity,
-                          speckle_share_for, volume_fits)
+from .stereo_sgbm import (BLOCK, JUMP_PENALTY, LR_MAX_DIFF, STEP_PENALTY, four_paths_fit, num_disparities,
+                          sgbm_disparity, speckle_share_for)
 from .surfaces import (SAME_SURFACE_COLUMNS, anchored_cells, fit_plain_surfaces, fit_wide_planes, plain_windows,
                        surface_forest, surface_median)
 from .tone import apply_tone_curve, fit_tone_curve, matched_colours
@@ -547,8 +547,7 @@ def _cells_kept(L1: np.ndarray, L2: np.ndarray, num_d: int, opt,
     size = (L1.shape[1] // reduction, L1.shape[0] // reduction)
     s1, s2 = (cv2.resize(L, size, interpolation=cv2.INTER_AREA) for L in (L1, L2))
     nd = num_disparities(num_d / reduction)
-    # the aggregation the full-size run will use (four full paths only where its volume fits)
-    full = opt.full_paths and volume_fits(L1, num_d)
+    full = opt.full_paths and four_paths_fit(L1, num_d)  # (the aggregation the full-size run will use)
     flat = flat_windows(s1) if opt.flat_check else None  # the same for every penalty
     kept: dict[int, int] = {}
 
