@@ -97,7 +97,7 @@ def sgbm_disparity(L1: np.ndarray, L2: np.ndarray, min_d: int, num_d: int, uniqu
     ``min_d``) and whether the four full paths ran. Where their cost volume exceeds
     :data:`MAX_FULL_VOLUME` they run over strips of rows (:func:`_striped`), the speckle
     filter over the whole map after; without ``full_paths``, or where a strip's margins alone
-    exceed that volume (:func:`four_paths_fit`), OpenCV's 3 directions."""
+    exceed :data:`STRIP_VOLUME` (:func:`four_paths_fit`), OpenCV's 3 directions."""
     cn = L1.shape[2] if L1.ndim == 3 else 1
     window = speckle_window(*L1.shape[:2], num_d, speckle_share) if speckle else 0
     full = full_paths and four_paths_fit(L1, num_d)
