@@ -509,7 +509,6 @@ def test_four_paths_run_over_strips_of_rows_where_their_volume_does_not_fit(monk
         whole, full = sgm.sgbm_disparity(L1, L2, 0, 64, 10, speckle=False)
         assert full
         monkeypatch.setattr(sgm, "MAX_FULL_VOLUME", (17 + 2 * sgm.STRIP_MARGIN) * L1.shape[1] * 64)
-        monkeypatch.setattr(sgm, "STRIP_VOLUME", sgm.MAX_FULL_VOLUME)
         assert sgm.strip_rows(L1.shape[1], 64) == 17
         striped, full = sgm.sgbm_disparity(L1, L2, 0, 64, 10, speckle=False)
         assert full
@@ -523,7 +522,6 @@ def test_four_paths_run_over_strips_of_rows_where_their_volume_does_not_fit(monk
         monkeypatch.undo()
     # a budget under the margins' rows: OpenCV's 3 directions
     monkeypatch.setattr(sgm, "MAX_FULL_VOLUME", 2 * sgm.STRIP_MARGIN * L1.shape[1] * 64)
-    monkeypatch.setattr(sgm, "STRIP_VOLUME", sgm.MAX_FULL_VOLUME)
     assert sgm.strip_rows(L1.shape[1], 64) == 0 and not sgm.four_paths_fit(L1, 64)
     assert not sgm.sgbm_disparity(L1, L2, 0, 64, 10)[1]
 

@@ -54,19 +54,15 @@ JUMP_PENALTY = 32
 #: Over the 60 real cases the four paths gave +0.006 precision and +0.010 coverage at
 #: 1 px against the eight (the generated scenes: -0.003 / +0.001), in half the time.
 MAX_FULL_VOLUME = 250_000_000
-#: A larger volume runs the four paths over strips of rows (:func:`_striped`), each with
-#: this many rows more above and below whose estimates are left out: the paths across the
-#: lines run that far into the strip before its first kept row. Against one run over the
-#: whole of two generated pairs' line images (cut in two or four strips), 0.05-1.3 % of the
-#: cells came more than a column apart with 32 rows, 0.25-1.0 % with 64, 0.16-1.5 % with 16; the
-#: margins cost time (in strips of 250 M cells the bench pair took 6 with 32 rows and 7 with
-#: 64, 28 % longer).
+#: A larger volume runs the four paths over strips of rows (:func:`_striped`), each of at
+#: most that many cells with this many rows more above and below whose estimates are left
+#: out: the paths across the lines run that far into the strip before its first kept row.
+#: Against one run over the whole of two generated pairs' line images (cut in two or four
+#: strips), 0.05-1.3 % of the cells came more than a column apart with 32 rows, 0.25-1.0 %
+#: with 64, 0.16-1.5 % with 16; the margins cost time (in strips of 250 M cells the bench
+#: pair took 6 s with 32 rows and 7 s with 64, 28 % longer). The bench pair's peak memory
+#: with strips of 250 M cells: 1,535 MB (150 M: 1,205 MB, and its SGM 20-40 % slower).
 STRIP_MARGIN = 32
-#: Each strip's volume, margins included, is at most this many cells (0.5 GB at 3.3 bytes a
-#: cell): beside the rest of a 2000x1500 pair's run (1.25 GB resident then), strips of
-#: :data:`MAX_FULL_VOLUME` took the bench pair's peak to 2,088 MB, over the 2 GB the tool
-#: is held to.
-STRIP_VOLUME = 150_000_000
 
 
 def num_disparities(span: float) -> int:
@@ -97,7 +93,7 @@ def sgbm_disparity(L1: np.ndarray, L2: np.ndarray, min_d: int, num_d: int, uniqu
     ``min_d``) and whether the four full paths ran. Where their cost volume exceeds
     :data:`MAX_FULL_VOLUME` they run over strips of rows (:func:`_striped`), the speckle
     filter over the whole map after; without ``full_paths``, or where a strip's margins alone
-    exceed :data:`STRIP_VOLUME` (:func:`four_paths_fit`), OpenCV's 3 directions."""
+    exceed :data:`MAX_FULL_VOLUME` (:func:`four_paths_fit`), OpenCV's 3 directions."""
     cn = L1.shape[2] if L1.ndim == 3 else 1
     window = speckle_window(*L1.shape[:2], num_d, speckle_share) if speckle else 0
     full = full_paths and four_paths_fit(L1, num_d)
@@ -123,9 +119,9 @@ def sgbm_disparity(L1: np.ndarray, L2: np.ndarray, min_d: int, num_d: int, uniqu
 def strip_rows(columns: int, num_d: int) -> int:
     """The rows each strip of a striped run keeps (:func:`_striped`) for line images
     ``columns`` wide searching ``num_d`` columns: those whose volume, with
-    :data:`STRIP_MARGIN` rows above and below, fits :data:`STRIP_VOLUME`; 0 where not
+    :data:`STRIP_MARGIN` rows above and below, fits :data:`MAX_FULL_VOLUME`; 0 where not
     even the margins fit."""
-    return max(STRIP_VOLUME // max(columns * num_d, 1) - 2 * STRIP_MARGIN, 0)
+    return max(MAX_FULL_VOLUME // max(columns * num_d, 1) - 2 * STRIP_MARGIN, 0)
 
 
 def _striped(sgbm, L1: np.ndarray, L2: np.ndarray, core: int) -> np.ndarray:
