@@ -1073,7 +1073,7 @@ def fill_planes(gray1: np.ndarray, size2: tuple[int, int], tv, uv1: np.ndarray, 
             continue
         support = np.mean(on_plane)  # (judged on every match of the region, before any is dropped)
         # its own matches on one plane, all that SGM found there on none: no surface the matcher
-        # found (where its own scatter, the intensities may still align one, below)
+        # found (where its own matches scatter, the intensities may still align one, below)
         if (few and rep_lab is not None and support >= MAX_SCATTERED_SUPPORT
                 and _scattered_with(uv1[idx], uv2[idx], repeats, rep_lab == k, areas[k], seed)):
             dropped.append(idx)

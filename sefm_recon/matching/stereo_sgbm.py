@@ -60,7 +60,7 @@ MAX_FULL_VOLUME = 250_000_000
 #: Against one run over the whole of two generated pairs' line images (cut in two or four
 #: strips), 0.05-1.3 % of the cells came more than a column apart with 32 rows, 0.25-1.0 %
 #: with 64, 0.16-1.5 % with 16; the margins cost time (in strips of 250 M cells the bench
-#: pair took 6 s with 32 rows and 7 s with 64, 28 % longer). The bench pair's peak memory
+#: pair took 6 strips with 32 rows and 7 with 64, 28 % longer). The bench pair's peak memory
 #: with strips of 250 M cells: 1,535 MB (150 M: 1,205 MB, and its SGM 20-40 % slower).
 STRIP_MARGIN = 32
 
