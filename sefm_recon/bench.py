@@ -7,7 +7,8 @@ rectification and the disparity range the scene needs. Each is run ``repeat``
 times and the last run is reported (numba's caches and the OS file cache are
 warm by then). Peak memory is the process's resident-set high-water mark,
 reset before each method (Linux ``/proc/self/clear_refs``), so it includes the
-images and everything held at the time.
+images and everything held at the time. The report names the libraries' versions
+(:func:`.versions.library_versions`): OpenCV's release alone moves some scenes' figures.
 """
 
 from __future__ import annotations
@@ -17,6 +18,8 @@ import logging
 import tempfile
 import time
 from pathlib import Path
+
+from .versions import format_versions, library_versions
 
 logger = logging.getLogger(__name__)
 
@@ -95,7 +98,8 @@ def bench(size=(2000, 1500), seed: int = 7, repeat: int = 2, overrides=(), write
     v1, v2 = scene.views[:2]
     logger.info("rendered %dx%d pair (seed %d) in %.1f s", size[0], size[1], seed, time.perf_counter() - t0)
     cov = covisibility_mask(v1, v2)
-    report: dict = {"size": list(size), "seed": seed, "repeat": repeat, "config_overrides": list(overrides)}
+    report: dict = {"size": list(size), "seed": seed, "repeat": repeat, "config_overrides": list(overrides),
+                    "libraries": library_versions()}
     for rep in range(repeat):
         # each method's results are scored and let go before the next run, so that no run's
         # peak memory holds another's
@@ -121,6 +125,7 @@ def format_report(r: dict) -> str:
     s, g = r["sefm"], r["sgbm"]
     rows = [
         f"sefm-recon bench: {w}x{h} generated pair (seed {r['seed']}), run {r['repeat']} of {r['repeat']} reported",
+        format_versions(r["libraries"]),
         "",
         f"{'':10} {'wall s':>8} {'matches':>9} {'p@1':>6} {'p@3':>6} {'cov@1':>6} {'cov@3':>6} {'peak MB':>8}",
     ]

@@ -207,6 +207,7 @@ def _cmd_eval(args) -> int:
 
     from . import eval_tables as et
     from .config import load_config
+    from .versions import format_versions
 
     load_config(None, args.overrides, internal=True)  # bad keys fail before any work (eval may set internal ones)
     if not args.verbose:  # one progress line per pair, not the pipeline's own lines
@@ -245,6 +246,7 @@ def _cmd_eval(args) -> int:
         main, extra = "generated", {}
         text = (f"Generated scenes ({args.style}, {w}x{h}), means per motion (a failed run scores 0):\n\n"
                 + et.format_means(rows, "motion") + "\n\nEvery scene:\n\n" + et.format_rows(rows, "seed"))
+    text += "\n\nLibraries: " + format_versions()  # (the figures depend on them)
     print(text)
     if args.json:
         with open(args.json, "w") as f:

@@ -46,6 +46,7 @@ from . import __version__
 from .config import Config
 from .errors import InputError
 from .io.colmap_model import MODEL_FILES
+from .versions import library_versions
 
 logger = logging.getLogger(__name__)
 
@@ -794,6 +795,7 @@ def run_colmap(
                       db_dropped_matches=int(q.dropped))
         report = {
             "version": __version__,
+            "libraries": library_versions(),
             "workspace": str(Path(workspace).resolve()),
             "image_dir": str(ws.image_dir.resolve()),
             "sparse_dir": str(ws.sparse_dir.resolve()),

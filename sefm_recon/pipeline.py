@@ -509,9 +509,11 @@ def build_report(result: PairResult, cfg: Config, names: tuple[str, str]) -> dic
     "Output files" sections; a change here changes them too.
     """
     from .io.cameras import camera_to_string as cts
+    from .versions import library_versions
 
     return {
         "version": __version__,
+        "libraries": library_versions(),
         "images": list(names),
         "image_size": result.image_size,
         "cameras": [cts(result.camera1), cts(result.camera2)],

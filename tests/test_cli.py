@@ -39,6 +39,7 @@ def test_pair_writes_every_output(demo_out):
     report = json.loads((demo_out / "report.json").read_text())
     for key in ("version", "config", "timings_s", "counts", "image_size"):
         assert key in report
+    assert report["libraries"]["numpy"] == np.__version__  # (what the figures were computed with)
     counts = report["counts"]
     for key in ("sift_matches", "rough_matches", "dense_matches", "valid_matches", "points"):
         assert key in counts
@@ -176,3 +177,17 @@ def test_allocator_settings_apply_on_glibc():
         pytest.skip("needs glibc without user allocator settings")
     assert memory.keep_freed_memory() is True
     memory.release_freed_memory()  # and back, harmlessly
+
+
+def test_eval_tables_name_the_libraries_they_were_made_with(tmp_path):
+    import cv2
+
+    results = tmp_path / "results.md"
+    results.write_text("# Results\n<!-- eval:generated begin -->\n<!-- eval:generated end -->\n")
+    r = run_cli("eval", "--seeds", 0, "--size", "200x150", "-q", "--results", results)
+    assert r.returncode == 0, r.stderr
+    section = results.read_text().split("<!-- eval:generated begin -->")[1].split("<!-- eval:generated end -->")[0]
+    last = section.strip().splitlines()[-1]
+    assert last.startswith("Libraries: sefm-recon ")
+    assert f"numpy {np.__version__}," in last and f"opencv {cv2.__version__}" in last
+    assert "| 0 | lateral | SeFM (true pose) |" in section  # (the table above it)

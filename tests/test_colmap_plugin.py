@@ -121,7 +121,7 @@ def test_writes_every_output(text_run):
     assert not [p for p in out.parent.iterdir() if p.name.startswith(".")]  # no staging left over
     assert r.stdout == "" and r.stderr == ""  # -q
     report = json.loads((out / "report.json").read_text())
-    for key in ("version", "config", "timings_s", "counts", "image_size", "pairs", "sparse", "fusion"):
+    for key in ("version", "libraries", "config", "timings_s", "counts", "image_size", "pairs", "sparse", "fusion"):
         assert key in report
     assert report["pair_selection"] == "poses"  # the model has no points
     assert report["pair_candidates_dropped"] == []  # three views within 50 degrees: every pair kept
