@@ -5,8 +5,10 @@ BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 TESTED := $(VENV)/.installed-test
 # Quiet pip: no version notice, no root-user notice, and no build-backend warnings (setuptools'
-# "Editable installation" box, which new pip shows even with -q); errors still print.
-PIP    := PYTHONWARNINGS=ignore $(BIN)/pip install -q --disable-pip-version-check --root-user-action=ignore
+# "Editable installation" box, which new pip shows even with -q); errors still print. The
+# libraries' releases are those of constraints.txt (the figures in docs/ were measured with them).
+PIP    := PYTHONWARNINGS=ignore $(BIN)/pip install -q --disable-pip-version-check --root-user-action=ignore \
+          -c constraints.txt
 SAMPLE := data_samples/scene
 DEMO   := demo_out
 
@@ -40,7 +42,7 @@ colmap:
 	  fi; \
 	fi
 
-$(STAMP): pyproject.toml
+$(STAMP): pyproject.toml constraints.txt
 	@echo "installing sefm-recon and its dependencies into $(VENV) (a few minutes the first time)"
 	@$(PYTHON) -m venv $(VENV)
 	@$(PIP) -e .
