@@ -221,26 +221,22 @@ def _repeats_off(uv1, share, seed=3):
     return rep1, rep1 - np.column_stack([_parallax(FLOOR, rep1) + off, np.zeros(len(rep1))])
 
 
-def test_a_floor_whose_own_matches_scatter_is_aligned_whatever_the_repeat_checks_drops():
-    """40 % of the floor's matches on its plane and some estimates the repeat check dropped
-    there: the intensities align its plane as for the floor without them (the matches off it
-    go, the floor is filled). Where the floor's own matches lie on one plane (55 %) and only
-    the repeat check's drops, a fifth as many, take the share on one plane under half, the
-    region is dropped whole, image 2 or not (a striped wall's, whose stripes an aligned plane
-    can take a period off: seeds 89 and 96 lost 0.02-0.03 at 3 px so). Generated seed 174's
-    plain floor, 38 % on one plane and one repeat among its 23,555 matches, was dropped whole
-    before its plane was tried: 0.633 of coverage at 1 px, 0.839 aligned."""
-    one, two, uv1, uv2, X, err = _plain_floor_scene(right_share=0.4)
-    out = fill_planes(one, (W, H), TV, uv1, uv2, X, gray2=two, repeats=_repeats_off(uv1, 0.01))
-    gone = np.zeros(len(uv1), bool)
-    gone[out.dropped] = True
-    assert not gone[err <= 2.9].any() and gone[err > 3.1].mean() > 0.95
-    assert len(out.uv1) > 2 * len(uv1)
-    assert np.abs(out.uv1[:, 0] - out.uv2[:, 0] - _parallax(FLOOR, out.uv1)).max() < 0.15
-    one, two, uv1, uv2, X, err = _plain_floor_scene(right_share=0.55)
-    for gray2 in (None, two):
-        out = fill_planes(one, (W, H), TV, uv1, uv2, X, gray2=gray2, repeats=_repeats_off(uv1, 0.2))
-        assert len(out.dropped) > 0.95 * len(uv1) and len(out.uv1) == 0
+def test_a_scattered_floor_with_repeats_is_dropped_whole_though_its_plane_would_align():
+    """The floor whose plane the intensities align without repeats (40 % of its matches on
+    it; the test above) is dropped whole, image 2 or not, once the repeat check dropped
+    estimates there and they with its matches lie on no one plane: texture repeating along
+    the lines, where an aligned plane can be a period off or SGM's own wrong surface
+    (generated seed 6 at 1600x1200, a floor aligned at a median ZNCC of 0.991 and filled
+    15 px off: 0.925 at 3 px, 0.996 dropped). So is a floor whose own matches lie on one plane
+    (55 %) and only the drops, a fifth as many, take the share under half."""
+    for right_share, share in ((0.4, 0.01), (0.55, 0.2)):
+        one, two, uv1, uv2, X, err = _plain_floor_scene(right_share=right_share)
+        for gray2 in (None, two):
+            out = fill_planes(one, (W, H), TV, uv1, uv2, X, gray2=gray2, repeats=_repeats_off(uv1, share))
+            assert len(out.dropped) > 0.95 * len(uv1) and len(out.uv1) == 0
+        # without the repeats the first floor's plane aligns and fills it
+        if right_share == 0.4:
+            assert len(fill_planes(one, (W, H), TV, uv1, uv2, X, gray2=two).uv1) > 2 * len(uv1)
 
 
 def test_a_mostly_matched_floor_with_too_few_matches_on_one_plane_is_filled_where_its_plane_aligns():

@@ -35,9 +35,7 @@ to its matches than to the plane's (the median over those where either agrees,
 (within :data:`RIM_SNAP_PX` of it, and nearer to it than to the plane) stay as SGM left
 them, and the aligned plane fills none of them. Else, with most of them off any one
 plane, the matcher found no surface there at all, and they are dropped (:data:`MAX_SCATTERED_SUPPORT`);
-where its own matches do lie on one plane, the estimates the repeat check dropped there
-(:mod:`.periodic`) count in that test with them, before any plane is aligned (a striped
-surface's plane can align a period off).
+the estimates the repeat check dropped there (:mod:`.periodic`) count in that test with them.
 So are those of a mostly unmatched region whose plane is the first parallax of the search,
 where OpenCV breaks the ties of a cost without a minimum (:data:`TIE_COLUMNS`).
 Where they do mostly lie on one plane, the ones off it face the same test: patches carried
@@ -1072,10 +1070,11 @@ def fill_planes(gray1: np.ndarray, size2: tuple[int, int], tv, uv1: np.ndarray, 
         if abc is None:
             continue
         support = np.mean(on_plane)  # (judged on every match of the region, before any is dropped)
-        # its own matches on one plane, all that SGM found there on none: no surface the matcher
-        # found (where its own matches scatter, the intensities may still align one, below)
-        if (few and rep_lab is not None and support >= MAX_SCATTERED_SUPPORT
-                and _scattered_with(uv1[idx], uv2[idx], repeats, rep_lab == k, areas[k], seed)):
+        # all that SGM found there, its matches and the repeat check's drops, on no one plane:
+        # no surface the matcher found, and texture repeating along the lines, where a plane
+        # the intensities align can be a period off or SGM's own wrong surface (generated seed
+        # 6 at 1600x1200: a floor's plane aligned at a median ZNCC of 0.991, 15 px off)
+        if few and rep_lab is not None and _scattered_with(uv1[idx], uv2[idx], repeats, rep_lab == k, areas[k], seed):
             dropped.append(idx)
             orphans.append(k)
             continue
