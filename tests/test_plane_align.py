@@ -223,7 +223,8 @@ def _repeats_off(uv1, share, seed=3):
 
 def test_a_scattered_floor_with_repeats_is_dropped_whole_though_its_plane_would_align():
     """The floor whose plane the intensities align without repeats (40 % of its matches on
-    it; the test above) is dropped whole, image 2 or not, once the repeat check dropped
+    it; test_a_mostly_unmatched_floor_whose_plane_aligns_is_kept_moved_onto_it_and_filled)
+    is dropped whole, image 2 or not, once the repeat check dropped
     estimates there and they with its matches lie on no one plane: texture repeating along
     the lines, where an aligned plane can be a period off or SGM's own wrong surface
     (generated seed 6 at 1600x1200, a floor aligned at a median ZNCC of 0.991 and filled
