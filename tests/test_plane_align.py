@@ -579,6 +579,65 @@ def test_a_second_surface_in_an_aligned_planes_region_keeps_its_matches_and_take
     assert (filled[~on_wall, 1] < JOIN + 8).all()
 
 
+#: A surface 6 px nearer than the floor (in parallax) beside it, and the period (px) and
+#: amplitude (grey levels) of the shading both share: stripes across the epipolar lines,
+#: which correlate under any shift along them (a linear ramp would not: the local
+#: normalisation takes it out), 1 grey level a px at most, under the intensity edges' bar.
+NEARER = FLOOR + np.array([0.0, 0.0, 6.0 / F])
+STRIPES, SHADE = 40.0, 8.0
+
+
+def _floor_and_nearer_surface(seed=0):
+    """One plain region: the floor on the left half, a surface 6 px nearer on the right, each
+    its own faint texture blended over 8 columns, both under the same shading stripes; image 2
+    as the two give it (the nearer one hiding the floor's right edge). A third of the left
+    half's pixels matched, 40 % right (0.3 px of noise), the rest 2-8 px off; none on the right."""
+    rng = np.random.default_rng(seed)
+    blend = np.clip((np.arange(W) - (W // 2 - 4)) / 8.0, 0, 1)[None, :]
+    rows = np.arange(H, dtype=np.float32)[:, None]
+    one = (_texture(seed, 3.0) * (1 - blend) + _texture(seed + 7, 3.0) * blend
+           + SHADE * np.cos(2 * np.pi * rows / STRIPES))
+    ys, xs = np.mgrid[0:H, 0:W].astype(np.float32)
+    floor, nearer = F * ((ys + 0.5) * FLOOR[1] + FLOOR[2]), F * ((ys + 0.5) * NEARER[1] + NEARER[2])
+    shift = np.where(xs + nearer >= W // 2, nearer, floor).astype(np.float32)
+    two = cv2.remap(one.astype(np.float32), xs + shift, ys, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+    two = np.clip(np.rint(0.8 * two + 20 + rng.normal(scale=1.0, size=two.shape)), 0, 255).astype(np.uint8)
+    one = np.clip(np.rint(one), 0, 255).astype(np.uint8)
+    frame = np.ones((H, W), bool)
+    frame[12:H - 12, 12:W - 12] = False
+    one[frame] = rng.integers(0, 256, np.count_nonzero(frame))
+    px = _pixels(step=1, margin=16)
+    px = px[(rng.random(len(px)) < 0.3) & (px[:, 0] < W / 2 - 8)]
+    err = np.where(rng.random(len(px)) < 0.4, rng.normal(scale=0.3, size=len(px)),
+                   rng.choice([-1, 1], len(px)) * rng.uniform(2, 8, len(px)))
+    uv2 = px - np.column_stack([_parallax(FLOOR, px) + err, np.zeros(len(px))])
+    X, ok, _ = triangulate(TV.K1, TV.K2, TV.R, TV.t, px, uv2)
+    return one, two, px[ok], uv2[ok], X[ok]
+
+
+def test_an_aligned_floor_fills_no_surface_beside_it_that_its_shading_correlates_on(monkeypatch):
+    """The floor's plane aligns on its matches, and image 2 under it correlates with image 1
+    over the nearer surface too (the shading, at 0.8 and more on over half of it): judged by
+    that alone, 20,000 of its pixels took the floor's partners, 6 px off. Aligned on those
+    pixels, the plane converges onto another one over 1 px away: none of them is filled,
+    while the floor's holes are, on the floor."""
+    import sefm_recon.matching.planes as planes
+
+    one, two, uv1, uv2, X = _floor_and_nearer_surface()
+
+    def filled():
+        out = fill_planes(one, (W, H), TV, uv1, uv2, X, gray2=two)
+        right = out.uv1[:, 0] >= W / 2
+        off = np.abs(out.uv1[:, 0] - out.uv2[:, 0] - _parallax(FLOOR, out.uv1))
+        return np.count_nonzero(~right), np.count_nonzero(right), off[~right]
+
+    on_floor, beside, off = filled()
+    assert on_floor > 15000 and beside == 0 and off.max() < 0.2
+    with monkeypatch.context() as m:  # (the plane judged by image 2's correlation alone)
+        m.setattr(planes, "_realigned_apart", lambda *args: 0.0)
+        assert filled()[1] > 15000
+
+
 def test_gradient_along_depth_is_the_warped_gradient_through_the_jacobian():
     """Image 2's gradient along the partners' move by depth: the warped image's gradient through
     the inverse of the warp's Jacobian, dotted with the partner's derivative by depth (written
