@@ -10,10 +10,10 @@ matches mostly agree on a plane (:func:`fill_planes`), the plane is aligned by t
 images' intensities where its halves agree on it and image 2 under it bears it out
 (:mod:`.plane_align`, :data:`.plane_align.ALIGNED_ZNCC`), and the unmatched
 pixels among the plane's matches (:data:`MIN_HOLE_SUPPORT`), and those of an aligned plane
-where image 2 under it matches image 1 (:data:`.plane_align.FILL_ZNCC`) if the plane aligned
-on these alone stays on itself (:func:`_realigned_apart`), take the partner that plane
-gives, unless a nearer surface's match already lands there in image 2 (the pixel is hidden
-in view 2).
+where image 2 under it matches image 1 (:data:`.plane_align.FILL_ZNCC`) and, if aligned on
+these alone it converges onto another plane, where the two planes agree
+(:func:`_realigned_apart`), take the partner that plane gives, unless a nearer surface's
+match already lands there in image 2 (the pixel is hidden in view 2).
 
 A region whose matches are few (:data:`MIN_MATCHED_SHARE`), or split over several
 depths (a wrong patch of the matcher, a curved or folded surface), is not filled from
@@ -1006,16 +1006,21 @@ def _converged(images, A: np.ndarray, e: np.ndarray, px: np.ndarray, start: np.n
 
 
 def _realigned_apart(gray1: np.ndarray, gray2: np.ndarray, pose: _Pose, abc: np.ndarray, x0: int, y0: int,
-                     mask: np.ndarray, rng: np.random.Generator) -> float:
-    """How far (px, median over the pixels of ``mask`` (h, w) bool, the box at ``(x0, y0)``,
-    :func:`_align_pixels`) the partners of the plane ``abc`` move when it is aligned on those
-    pixels alone until it converges (:func:`_converged`); NaN, which exceeds no bar, where it
-    does not (pixels too few or too thin to fix a plane). ``gray1``: (H, W) uint8; ``gray2``:
-    (H2, W2) float32."""
+                     mask: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """How far (px) the partners of the plane ``abc`` lie from those of the plane it converges
+    onto when aligned on the pixels of ``mask`` (h, w) bool alone (the box at ``(x0, y0)``,
+    :func:`_align_pixels`, :func:`_converged`), at each of those pixels ((n,) in the order of
+    ``np.nonzero(mask)``); all zero where it does not converge (pixels too few or too thin to
+    fix a plane: nothing against ``abc``). ``gray1``: (H, W) uint8; ``gray2``: (H2, W2) float32."""
     px = _align_pixels(mask, x0, y0, rng)
     A, e = pose.K2 @ pose.R @ pose.K1inv, pose.K2 @ pose.t
-    cur = _converged(align_images(gray1, gray2, px), A, e, px, abc)
-    return np.nan if cur is None else median_apart(A, e, np.column_stack([px, np.ones(len(px))]), abc, cur)
+    own = _converged(align_images(gray1, gray2, px), A, e, px, abc)
+    ys, xs = np.nonzero(mask)
+    if own is None:
+        return np.zeros(len(ys))
+    p1 = np.column_stack([xs + x0 + 0.5, ys + y0 + 0.5]).reshape(-1, 1, 2)
+    return np.linalg.norm(cv2.perspectiveTransform(p1, _homography(pose, abc))
+                          - cv2.perspectiveTransform(p1, _homography(pose, own)), axis=2)[:, 0]
 
 
 def _fill_partners(tv, pose: _Pose, abc: np.ndarray, xs: np.ndarray, ys: np.ndarray, x0: int, y0: int,
@@ -1183,15 +1188,17 @@ def fill_planes(gray1: np.ndarray, size2: tuple[int, int], tv, uv1: np.ndarray, 
         if aligned is not None:  # an aligned plane also beyond its matches, where image 2 under it agrees
             agree, z = _agreeing(gray1, image2(), pose, abc, x0, y0, region, among)
             beyond = unmatched & agree
-            if (np.count_nonzero(beyond) >= 2 * MIN_HALF_PIXELS  # (fewer fix no plane: their fill stays)
-                    and _realigned_apart(gray1, image2(), pose, abc, x0, y0, beyond,
-                                         np.random.default_rng(seed)) > AGREE_PX):
-                # the pixels beyond its matches where image 2 under the plane agrees align to
-                # another plane (over the precision the matches are judged at): a second surface
-                # the region holds with no edge between them, whose shading correlates under the
-                # wrong plane too (generated seed 3 at 1600x1200: a box's right face, 1.51 px off
-                # the left face's plane realigned there, its fill 79 % over 3 px off)
-                agree = np.zeros_like(agree)
+            if np.count_nonzero(beyond) >= 2 * MIN_HALF_PIXELS:  # (fewer fix no plane: their fill stays)
+                # those pixels, aligned on alone, may converge onto another plane (a median over the
+                # precision the matches are judged at): a second surface the region holds with no
+                # edge between them, whose shading correlates under the wrong plane too (generated
+                # seed 3 at 1600x1200: a box's right face, 1.51 px off the left face's plane
+                # realigned there, its fill 79 % over 3 px off). They are filled only where the two
+                # planes agree.
+                ys, xs = np.nonzero(beyond)
+                apart = _realigned_apart(gray1, image2(), pose, abc, x0, y0, beyond, np.random.default_rng(seed))
+                if np.median(apart) > AGREE_PX:
+                    agree[ys[apart > AGREE_PX], xs[apart > AGREE_PX]] = False
             ys, xs = np.nonzero(unmatched & (among | agree))
             if snap and not few:  # (a mostly unmatched region's matches near it moved above)
                 near = _noise_about(pose, uv1[idx], uv2[idx], X[idx, 2], abc, x0, y0, region.shape, z)
