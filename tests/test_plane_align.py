@@ -582,7 +582,8 @@ def test_a_second_surface_in_an_aligned_planes_region_keeps_its_matches_and_take
 #: A surface 6 px nearer than the floor (in parallax) beside it, and the period (px) and
 #: amplitude (grey levels) of the shading both share: stripes across the epipolar lines,
 #: which correlate under any shift along them (a linear ramp would not: the local
-#: normalisation takes it out), 1 grey level a px at most, under the intensity edges' bar.
+#: normalisation takes it out), at most 1.3 grey levels a px (8 x 2 pi / 40), under the
+#: intensity edges' bar (:data:`.planes.EDGE_GREY_PER_PX`).
 NEARER = FLOOR + np.array([0.0, 0.0, 6.0 / F])
 STRIPES, SHADE = 40.0, 8.0
 
