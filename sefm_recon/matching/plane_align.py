@@ -40,7 +40,7 @@ import numpy as np
 from numba import njit
 
 __all__ = ["AlignImages", "agreement", "align_images", "align_plane", "halves_agree", "masked_zncc", "median_apart",
-           "normalised", "normalised_region"]
+           "normalised", "normalised_region", "partners_apart"]
 
 #: Gaussian blurs (px) of the levels the plane is aligned on, coarse to fine: at 4 px the
 #: warp's linearisation holds over the 1-3 px the fitted plane is off; below 2 px the sensor
@@ -244,10 +244,15 @@ def align_plane(images: AlignImages, A: np.ndarray, e: np.ndarray, uv1: np.ndarr
     return cur
 
 
+def partners_apart(A: np.ndarray, e: np.ndarray, p: np.ndarray, one: np.ndarray, two: np.ndarray) -> np.ndarray:
+    """The distance (px) between the partners the planes ``one`` and ``two`` give each of the
+    pixels ``p`` (N, 3) homogeneous: (N,)."""
+    return np.linalg.norm(_partners(A, e, p, one)[0] - _partners(A, e, p, two)[0], axis=1)
+
+
 def median_apart(A: np.ndarray, e: np.ndarray, p: np.ndarray, one: np.ndarray, two: np.ndarray) -> float:
-    """The median distance (px) between the partners the planes ``one`` and ``two`` give the
-    pixels ``p`` (N, 3) homogeneous."""
-    return float(np.median(np.linalg.norm(_partners(A, e, p, one)[0] - _partners(A, e, p, two)[0], axis=1)))
+    """The median of :func:`partners_apart` over the pixels ``p`` (N, 3) homogeneous."""
+    return float(np.median(partners_apart(A, e, p, one, two)))
 
 
 def halves_agree(images: AlignImages, A: np.ndarray, e: np.ndarray, uv1: np.ndarray, abc: np.ndarray, *,

@@ -74,7 +74,7 @@ from numba import njit
 from ..arrays import quiet_windows
 from .lines import LineGrid, match_parallax
 from .plane_align import (AGREE_PX, ALIGNED_ZNCC, FILL_ZNCC, MIN_HALF_PIXELS, NORM_RADIUS, agreement,
-                          align_images, align_plane, halves_agree, median_apart, normalised_region)
+                          align_images, align_plane, halves_agree, median_apart, normalised_region, partners_apart)
 from .stereo_sgbm import SPECKLE_SHARE
 from .surfaces import plain_windows
 
@@ -1009,18 +1009,16 @@ def _realigned_apart(gray1: np.ndarray, gray2: np.ndarray, pose: _Pose, abc: np.
                      mask: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     """How far (px) the partners of the plane ``abc`` lie from those of the plane it converges
     onto when aligned on the pixels of ``mask`` (h, w) bool alone (the box at ``(x0, y0)``,
-    :func:`_align_pixels`, :func:`_converged`), at each of those pixels ((n,) in the order of
-    ``np.nonzero(mask)``); all zero where it does not converge (pixels too few or too thin to
-    fix a plane: nothing against ``abc``). ``gray1``: (H, W) uint8; ``gray2``: (H2, W2) float32."""
+    :func:`_align_pixels`, :func:`_converged`), at each of those pixels ((n,), in the order of
+    ``mask[mask]``); all zero where it does not converge (pixels too few or too thin to fix a
+    plane: nothing against ``abc``). ``gray1``: (H, W) uint8; ``gray2``: (H2, W2) float32."""
     px = _align_pixels(mask, x0, y0, rng)
     A, e = pose.K2 @ pose.R @ pose.K1inv, pose.K2 @ pose.t
     own = _converged(align_images(gray1, gray2, px), A, e, px, abc)
     ys, xs = np.nonzero(mask)
     if own is None:
         return np.zeros(len(ys))
-    p1 = np.column_stack([xs + x0 + 0.5, ys + y0 + 0.5]).reshape(-1, 1, 2)
-    return np.linalg.norm(cv2.perspectiveTransform(p1, _homography(pose, abc))
-                          - cv2.perspectiveTransform(p1, _homography(pose, own)), axis=2)[:, 0]
+    return partners_apart(A, e, np.column_stack([xs + x0 + 0.5, ys + y0 + 0.5, np.ones(len(ys))]), abc, own)
 
 
 def _fill_partners(tv, pose: _Pose, abc: np.ndarray, xs: np.ndarray, ys: np.ndarray, x0: int, y0: int,
@@ -1195,10 +1193,9 @@ def fill_planes(gray1: np.ndarray, size2: tuple[int, int], tv, uv1: np.ndarray, 
                 # seed 3 at 1600x1200: a box's right face, 1.51 px off the left face's plane
                 # realigned there, its fill 79 % over 3 px off). They are filled only where the two
                 # planes agree.
-                ys, xs = np.nonzero(beyond)
                 apart = _realigned_apart(gray1, image2(), pose, abc, x0, y0, beyond, np.random.default_rng(seed))
                 if np.median(apart) > AGREE_PX:
-                    agree[ys[apart > AGREE_PX], xs[apart > AGREE_PX]] = False
+                    agree[beyond] &= apart <= AGREE_PX
             ys, xs = np.nonzero(unmatched & (among | agree))
             if snap and not few:  # (a mostly unmatched region's matches near it moved above)
                 near = _noise_about(pose, uv1[idx], uv2[idx], X[idx, 2], abc, x0, y0, region.shape, z)
