@@ -137,7 +137,7 @@ def _eligible_areas(gray1: np.ndarray, gray2: np.ndarray, tv, uv1: np.ndarray, u
     :func:`_largest_planes`'."""
     h, w = gray1.shape
     pose = _pose(tv)
-    A, e = pose.K2 @ pose.R @ pose.K1inv, pose.K2 @ pose.t
+    A, e = pose.warp()
     g2 = np.asarray(gray2, np.float32)
     px = uv1.astype(np.int64)
     index = np.full((h, w), -1, np.int64)

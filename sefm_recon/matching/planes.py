@@ -524,6 +524,11 @@ class _Pose(NamedTuple):
     t: np.ndarray  #: (3,)
     K2: np.ndarray  #: (3, 3)
 
+    def warp(self) -> tuple[np.ndarray, np.ndarray]:
+        """``A = K2 R K1^-1`` (3, 3) and ``e = K2 t`` (3,), as :func:`.plane_align.align_plane` takes
+        them: a pixel ``p`` on the plane ``abc`` has its partner at ``q ~ A p + e (p . abc)``."""
+        return self.K2 @ self.R @ self.K1inv, self.K2 @ self.t
+
 
 def _pose(tv) -> _Pose:
     return _Pose(np.linalg.inv(tv.K1), np.asarray(tv.R, np.float64), np.asarray(tv.t, np.float64).ravel(),
@@ -926,7 +931,7 @@ def _aligned_surface(gray1: np.ndarray, gray2: np.ndarray, pose: _Pose, x0: int,
     on = region & among
     if np.count_nonzero(on) < 2 * MIN_HALF_PIXELS:  # (matches too sparse for any pixel: no halves to compare)
         return None
-    A, e = pose.K2 @ pose.R @ pose.K1inv, pose.K2 @ pose.t
+    A, e = pose.warp()
     aligned, agree = _aligned_on(gray1, gray2, A, e, x0, y0, on, abc, rng)
     if not agree:
         # the pixels among the matches may span too little of the surface for its halves'
@@ -973,7 +978,7 @@ def _borrowed_plane(gray1: np.ndarray, gray2: np.ndarray, pose: _Pose, x0: int, 
         return None
     px = _align_pixels(region, x0, y0, rng)
     p = np.column_stack([px, np.ones(len(px))])
-    A, e = pose.K2 @ pose.R @ pose.K1inv, pose.K2 @ pose.t
+    A, e = pose.warp()
     images = align_images(gray1, gray2, px)
     image1 = normalised_region(gray1, x0, y0, region)
     best, best_z, tried = None, ALIGNED_ZNCC, []  # (best: the plane and its agreement)
@@ -1013,7 +1018,7 @@ def _realigned_apart(gray1: np.ndarray, gray2: np.ndarray, pose: _Pose, abc: np.
     ``mask[mask]``); all zero where it does not converge (pixels too few or too thin to fix a
     plane: nothing against ``abc``). ``gray1``: (H, W) uint8; ``gray2``: (H2, W2) float32."""
     px = _align_pixels(mask, x0, y0, rng)
-    A, e = pose.K2 @ pose.R @ pose.K1inv, pose.K2 @ pose.t
+    A, e = pose.warp()
     own = _converged(align_images(gray1, gray2, px), A, e, px, abc)
     ys, xs = np.nonzero(mask)
     if own is None:
